@@ -1,0 +1,431 @@
+"""Gaussian fusion of MRI and motion estimates (Tändl et al. 2010, sec. 4.5).
+
+Every joint parameter that both sources estimate (hip centre in the pelvis
+frame, knee centre and axis in the femur frame, ankle axis, segment lengths,
+correlative-law intercepts) is a Gaussian N(x_i, C_i) per source.  Their
+product is the Gaussian of the information-weighted estimate
+
+    P = Σ_i P_i,   P_i = C_i⁻¹,
+    x = P⁻¹ Σ_i P_i x_i,   C = P⁻¹,
+
+i.e. the minimiser of Σ_i (x - x_i)ᵀ P_i (x - x_i).  Source i receives the
+matrix weight W_i = C P_i (Σ_i W_i = I, x = Σ_i W_i x_i) and the scalar share
+tr(W_i) / d.  The same residual, χ² = Σ_i (x_i - x)ᵀ P_i (x_i - x) with
+(n - 1) d degrees of freedom, tests whether the sources agree.
+
+Directions live on the sphere: they are fused in the tangent plane at the
+current mean (logarithmic map, each covariance parallel-transported there),
+then mapped back (exponential map), iterated to the fixed point; the sign of
+each axis is aligned first.
+
+Per frame, segment poses of two kinematic chains (top-down Plug-in-Gait and
+foot-to-hip) are blended with the same Gaussian weights, each chain's pose
+error variance taken as its marker residual squared:
+w_b = r_a² / (r_a² + r_b²), R = R_a exp(w_b log(R_aᵀ R_b)) (the weighted
+geodesic mean on SO(3)), t = (1 - w_b) t_a + w_b t_b.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+from scipy.spatial.transform import Rotation
+
+from .errors import InputError
+
+__all__ = ["Fused", "FusedAxis", "BlendedPoses", "as_gaussian", "as_axis", "fuse_gaussian", "fuse_axis", "fuse_axes",
+           "blend_poses"]
+
+
+@dataclass(frozen=True)
+class Fused:
+    """Product of Gaussian estimates.
+
+    mean : (d,) fused estimate; cov : (d, d) its covariance
+    weights : (n, d, d) matrix weights W_i = C C_i⁻¹ (sum to I)
+    shares : (n,) scalar weight of each source, tr(W_i) / d (sum to 1)
+    chi2, dof, p_value : agreement of the sources (small p: they disagree)
+    names : source names
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    weights: np.ndarray
+    shares: np.ndarray
+    chi2: float
+    dof: int
+    p_value: float
+    names: tuple[str, ...]
+
+    @property
+    def sd(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def consistent(self) -> bool:
+        """False when the sources disagree beyond their covariances (p < 0.01)."""
+        return self.p_value >= 0.01
+
+    def summary(self) -> dict:
+        return {"mean": self.mean.tolist(), "cov": self.cov.tolist(), "sd": self.sd.tolist(),
+                "weights": dict(zip(self.names, self.shares.tolist())), "chi2": self.chi2,
+                "dof": self.dof, "p_value": self.p_value, "consistent": self.consistent}
+
+
+def _as_cov(c, d: int, name: str) -> np.ndarray:
+    c = np.asarray(c, float)
+    if c.ndim == 0:  # a variance for a scalar, or an isotropic variance
+        c = float(c) * np.eye(d)
+    c = c.reshape(d, d) if c.size == d * d else c
+    if c.shape != (d, d) or not np.all(np.isfinite(c)):
+        raise InputError(name, f"covariance must be a finite {d}x{d} matrix, got shape {c.shape}")
+    c = 0.5 * (c + c.T)
+    if np.linalg.eigvalsh(c)[0] <= 0:
+        raise InputError(name, "covariance is not positive definite (a source cannot be exact)")
+    return c
+
+
+def as_gaussian(estimate, *, frame: str = "proximal"):
+    """(mean, cov) of any estimate the project produces.
+
+    Accepts a ``(mean, cov)`` pair, a `kinematics.functional.CentreEstimate`
+    (``frame`` "proximal" or "distal"), a `SphereFit` (centre, cov), a
+    landmarks.json landmark ``{"position", "cov"}`` or a joints.json joint
+    ``{"origin", "origin_cov"}``.
+    """
+    if isinstance(estimate, tuple) and len(estimate) == 2:
+        return estimate
+    if isinstance(estimate, dict):
+        if "position" in estimate and "cov" in estimate:
+            return np.asarray(estimate["position"], float), np.asarray(estimate["cov"], float)
+        if "origin" in estimate and "origin_cov" in estimate:
+            return np.asarray(estimate["origin"], float), np.asarray(estimate["origin_cov"], float)
+    if hasattr(estimate, "cov_proximal"):
+        if frame not in ("proximal", "distal"):
+            raise InputError("frame", f"frame must be 'proximal' or 'distal', got {frame!r}")
+        return getattr(estimate, frame), getattr(estimate, f"cov_{frame}")
+    if hasattr(estimate, "centre") and hasattr(estimate, "cov"):
+        return estimate.centre, estimate.cov
+    raise InputError("fusion", f"cannot read a mean and covariance from {type(estimate).__name__}")
+
+
+def fuse_gaussian(estimates, names=None) -> Fused:
+    """Information-weighted fusion (product of Gaussians) of n ≥ 1 estimates.
+
+    Model: x_i = x + e_i, e_i ~ N(0, C_i) independent.  Minimises
+    Σ_i (x - x_i)ᵀ C_i⁻¹ (x - x_i), so that
+
+        C = (Σ_i C_i⁻¹)⁻¹,   x = C Σ_i C_i⁻¹ x_i,   W_i = C C_i⁻¹.
+
+    Parameters
+    ----------
+    estimates : sequence of (mean, cov): mean a scalar or (d,), cov a variance
+        (scalar, isotropic) or (d, d) matrix, same units as the mean squared;
+        or any object `as_gaussian` reads (CentreEstimate, landmark dict, ...)
+    names : source names (default "source0", ...)
+
+    Returns
+    -------
+    Fused
+    """
+    est = [as_gaussian(e) for e in estimates]
+    if not est:
+        raise InputError("fusion", "nothing to fuse")
+    names = tuple(names) if names is not None else tuple(f"source{i}" for i in range(len(est)))
+    if len(names) != len(est):
+        raise InputError("fusion", f"{len(names)} names for {len(est)} estimates")
+    xs = [np.atleast_1d(np.asarray(m, float)).ravel() for m, _ in est]
+    d = xs[0].size
+    for n, x in zip(names, xs):
+        if x.size != d or not np.all(np.isfinite(x)):
+            raise InputError(n, f"estimate must be {d} finite numbers, got {x}")
+    Ps = np.array([np.linalg.inv(_as_cov(c, d, n)) for (_, c), n in zip(est, names)])
+    P = Ps.sum(axis=0)
+    C = np.linalg.inv(P)
+    C = 0.5 * (C + C.T)
+    x = C @ np.einsum("nij,nj->i", Ps, np.array(xs))
+    W = np.einsum("ij,njk->nik", C, Ps)
+    shares = np.trace(W, axis1=1, axis2=2) / d
+    r = np.array(xs) - x
+    chi2 = float(np.einsum("ni,nij,nj->", r, Ps, r))
+    dof = (len(est) - 1) * d
+    p = float(stats.chi2.sf(chi2, dof)) if dof > 0 else 1.0
+    return Fused(x, C, W, shares, chi2, dof, p, names)
+
+
+# --------------------------------------------------------------------------- axes
+
+
+@dataclass(frozen=True)
+class FusedAxis:
+    """Fused axis.
+
+    direction : (3,) unit; sd_deg : 1-sd angle √(tr cov / 2) in degrees
+    cov : (3, 3) rad², tangent-plane covariance of the direction
+    shares : (n,) scalar weight of each source; flipped : (n,) bool, sources whose sign was reversed
+    chi2, dof, p_value : agreement of the directions (dof = 2 (n - 1))
+    point, point_cov : fused axis point (m) and covariance (across the axis), or None
+    """
+
+    direction: np.ndarray
+    sd_deg: float
+    cov: np.ndarray
+    shares: np.ndarray
+    flipped: np.ndarray
+    chi2: float
+    dof: int
+    p_value: float
+    names: tuple[str, ...]
+    point: np.ndarray | None = None
+    point_cov: np.ndarray | None = None
+
+    @property
+    def consistent(self) -> bool:
+        return self.p_value >= 0.01
+
+
+def _tangent_basis(u: np.ndarray) -> np.ndarray:
+    """(3, 2) orthonormal basis of the plane ⟂ u."""
+    a = np.eye(3)[int(np.argmin(np.abs(u)))]
+    e1 = np.cross(u, a)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(u, e1)], axis=1)
+
+
+def _log(ref: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Logarithmic map of the sphere at ref: tangent vector (3,) of length = angle."""
+    c = np.clip(u @ ref, -1.0, 1.0)
+    v = u - c * ref
+    s = np.linalg.norm(v)
+    return np.zeros(3) if s < 1e-15 else np.arctan2(s, c) * v / s
+
+
+def _exp(ref: np.ndarray, v: np.ndarray) -> np.ndarray:
+    a = np.linalg.norm(v)
+    return ref if a < 1e-15 else np.cos(a) * ref + np.sin(a) * v / a
+
+
+def _transport(cov: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Parallel transport of a tangent covariance at u to the tangent plane at v
+    (the minimal rotation taking u to v, about u × v)."""
+    w = np.cross(u, v)
+    s = np.linalg.norm(w)
+    if s < 1e-15:
+        return cov
+    Rm = Rotation.from_rotvec(w / s * np.arctan2(s, u @ v)).as_matrix()
+    return Rm @ cov @ Rm.T
+
+
+def _direction_cov(sd, u: np.ndarray, name: str) -> np.ndarray:
+    """Tangent covariance (3, 3) rad² from an sd in degrees or a 3x3 covariance (rad²)."""
+    s = np.asarray(sd, float)
+    Pu = np.eye(3) - np.outer(u, u)
+    if s.ndim == 0:
+        if not np.isfinite(s) or s <= 0:
+            raise InputError(name, f"axis sd must be a positive number of degrees, got {sd}")
+        return np.radians(float(s)) ** 2 * Pu
+    if s.shape != (3, 3):
+        raise InputError(name, f"axis uncertainty must be an sd in degrees or a 3x3 covariance, got shape {s.shape}")
+    return Pu @ (0.5 * (s + s.T)) @ Pu
+
+
+def fuse_axis(directions, sd_deg, names=None, points=None, point_covs=None, *, max_iter: int = 50) -> FusedAxis:
+    """Fuse axis directions (and optionally axis points) as Gaussians on the sphere.
+
+    Model: u_i = exp_u(e_i), e_i ~ N(0, Σ_i) in the tangent plane at the true
+    axis u (Σ_i = σ_i² (I - uuᵀ) for an sd σ_i).  Signs are aligned with the
+    most precise source (an axis has no preferred sense).  At the current
+    mean ū, with B (3x2) a tangent basis, v_i = Bᵀ log_ū(u_i) with the
+    covariances Bᵀ T_i Σ_i T_iᵀ B (T_i the parallel transport u_i → ū) are fused as
+    2-D Gaussians (`fuse_gaussian`) and ū ← exp_ū(B v̄) until v̄ = 0: the
+    Karcher mean under the Mahalanobis metric.
+
+    Axis points are determined only across the axis: each point's
+    information is restricted to the plane ⟂ ū, P_i = Π (Π C_i Π)⁺ Π
+    (Π = I - ūūᵀ), fused as x = (Σ P_i)⁺ Σ P_i x_i, which is the point of the
+    fused line nearest to the others' foot points.
+
+    Parameters
+    ----------
+    directions : (n, 3) directions (any length, any sense)
+    sd_deg : n entries, each an sd in degrees or a 3x3 tangent covariance in rad²
+    points : (n, 3) m or None; point_covs : (n, 3, 3) m² or None
+
+    Returns
+    -------
+    FusedAxis
+    """
+    U = np.asarray(directions, float)
+    if U.ndim != 2 or U.shape[1] != 3 or len(U) == 0:
+        raise InputError("fuse_axis", f"directions must be (n, 3), got {U.shape}")
+    n = len(U)
+    names = tuple(names) if names is not None else tuple(f"source{i}" for i in range(n))
+    norms = np.linalg.norm(U, axis=1)
+    if not np.all(np.isfinite(norms)) or np.any(norms < 1e-12):
+        raise InputError("fuse_axis", "an axis direction is zero or not finite")
+    U = U / norms[:, None]
+    sds = [sd_deg] * n if np.isscalar(sd_deg) or np.asarray(sd_deg, dtype=object).ndim == 0 else list(sd_deg)
+    if len(sds) != n:
+        raise InputError("fuse_axis", f"{len(sds)} uncertainties for {n} directions")
+    covs = [_direction_cov(s, u, nm) for s, u, nm in zip(sds, U, names)]
+    ref = U[int(np.argmin([np.trace(c) for c in covs]))]
+    flipped = U @ ref < 0
+    U[flipped] *= -1
+    mean = ref.copy()
+    for _ in range(max_iter):
+        B = _tangent_basis(mean)
+        est = []
+        for u, c in zip(U, covs):
+            est.append((B.T @ _log(mean, u), B.T @ _transport(c, u, mean) @ B))
+        f = fuse_gaussian(est, names)
+        mean = _exp(mean, B @ f.mean)
+        if np.linalg.norm(f.mean) < 1e-14:
+            break
+    B = _tangent_basis(mean)
+    f = fuse_gaussian([(B.T @ _log(mean, u), B.T @ _transport(c, u, mean) @ B) for u, c in zip(U, covs)], names)
+    cov3 = B @ f.cov @ B.T
+    point = point_cov = None
+    if points is not None:
+        X = np.asarray(points, float).reshape(n, 3)
+        Cs = np.asarray(point_covs, float).reshape(n, 3, 3) if point_covs is not None else None
+        if Cs is None:
+            raise InputError("fuse_axis", "axis points need their covariances")
+        Pi = np.eye(3) - np.outer(mean, mean)
+        Ps = np.array([Pi @ np.linalg.pinv(Pi @ C @ Pi, rcond=1e-12, hermitian=True) @ Pi for C in Cs])
+        Ptot = Ps.sum(axis=0)
+        point_cov = np.linalg.pinv(Ptot, rcond=1e-12, hermitian=True)
+        point = point_cov @ np.einsum("nij,nj->i", Ps, X)
+        # Put the point at the mean position along the axis so it stays near the data.
+        point = point + (np.mean(X, axis=0) - point) @ mean * mean
+    return FusedAxis(mean, float(np.degrees(np.sqrt(np.trace(cov3) / 2.0))), cov3, f.shares, flipped,
+                     f.chi2, f.dof, f.p_value, names, point, point_cov)
+
+
+def as_axis(estimate, *, frame: str = "proximal"):
+    """(direction, sd_deg, point, point_cov) of an axis estimate.
+
+    Accepts a `kinematics.functional.AxisEstimate` (``direction_sd`` in rad,
+    taken as the per-tangent-component sd), a landmarks.json axis
+    ``{"point", "direction", "sd_deg"}`` (point covariance unknown: None), a
+    joints.json joint ``{"origin", "origin_cov", "rotation", "axis_sd_deg"}``
+    (axis = third rotation column) or a 4-tuple.
+    """
+    if isinstance(estimate, tuple) and len(estimate) == 4:
+        return estimate
+    if isinstance(estimate, dict):
+        if "direction" in estimate:
+            return (np.asarray(estimate["direction"], float), float(estimate["sd_deg"]),
+                    np.asarray(estimate["point"], float), estimate.get("point_cov"))
+        if "rotation" in estimate:
+            return (np.asarray(estimate["rotation"], float)[:, 2], float(estimate["axis_sd_deg"]),
+                    np.asarray(estimate["origin"], float), estimate.get("origin_cov"))
+    if hasattr(estimate, "direction_sd"):
+        if frame not in ("proximal", "distal"):
+            raise InputError("frame", f"frame must be 'proximal' or 'distal', got {frame!r}")
+        cov = estimate.cov_point_proximal if frame == "proximal" else None
+        return (getattr(estimate, f"direction_{frame}"), float(np.degrees(estimate.direction_sd)),
+                getattr(estimate, f"point_{frame}"), cov)
+    raise InputError("fusion", f"cannot read an axis from {type(estimate).__name__}")
+
+
+def fuse_axes(estimates, names=None, *, frame: str = "proximal") -> FusedAxis:
+    """`fuse_axis` on estimates read by `as_axis`; points are fused when every source has a point covariance."""
+    ax = [as_axis(e, frame=frame) for e in estimates]
+    with_points = all(a[3] is not None for a in ax)
+    return fuse_axis([a[0] for a in ax], [a[1] for a in ax], names,
+                     points=[a[2] for a in ax] if with_points else None,
+                     point_covs=[a[3] for a in ax] if with_points else None)
+
+
+# --------------------------------------------------------------------------- per-frame pose blending
+
+
+@dataclass(frozen=True)
+class BlendedPoses:
+    """Per-frame blend of two pose sequences.
+
+    R : (F, 3, 3) rotations (segment -> lab); t : (F, 3) m origins
+    weight_a, weight_b : (F,) weight each chain received (sum 1; NaN where both missing)
+    sd : (F,) m, fused pose error scale √(r_a² r_b² / (r_a² + r_b²))
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    weight_a: np.ndarray
+    weight_b: np.ndarray
+    sd: np.ndarray
+
+    def as_segment_pose(self):
+        """The blend as a `kinematics.pig.SegmentPose` (origin, axes)."""
+        from kinematics.pig import SegmentPose
+        return SegmentPose(self.t, self.R)
+
+
+def _unpack_pose(p, name: str):
+    if isinstance(p, tuple) and len(p) >= 2:
+        R, t = p[0], p[1]
+    elif hasattr(p, "axes") and hasattr(p, "origin"):
+        R, t = p.axes, p.origin
+    elif hasattr(p, "R") and hasattr(p, "t"):
+        R, t = p.R, p.t
+    else:
+        raise InputError(name, "poses must be (R, t), a SegmentPose or a RigidPose")
+    R, t = np.asarray(R, float), np.asarray(t, float)
+    if R.ndim == 2:
+        R, t = R[None], t.reshape(1, 3)
+    if R.shape[1:] != (3, 3) or t.shape != (R.shape[0], 3):
+        raise InputError(name, f"poses must be R (F, 3, 3) and t (F, 3), got {R.shape} and {t.shape}")
+    return R, t
+
+
+def blend_poses(poses_a, poses_b, residuals_a, residuals_b, *, floor: float = 1e-4) -> BlendedPoses:
+    """Blend two chains' segment poses per frame with Gaussian weights from their residuals.
+
+    Model: each chain's pose error is Gaussian with variance proportional to
+    its squared marker residual, σ² = r² + floor².  The product of the two
+    Gaussians weights chain b by w_b = σ_a² / (σ_a² + σ_b²) and
+
+        R = R_a exp(w_b log(R_aᵀ R_b)),    t = (1 - w_b) t_a + w_b t_b,
+
+    the rotation being the weighted geodesic (Karcher) mean on SO(3) of the
+    two rotations.  A frame missing in one chain (NaN) takes the other.
+
+    Parameters
+    ----------
+    poses_a, poses_b : (R (F, 3, 3), t (F, 3)), SegmentPose or RigidPose
+    residuals_a, residuals_b : scalar or (F,) m, rms marker residual of each chain
+        (NaN: chain unusable in that frame)
+    floor : m, residual floor that keeps a perfect fit from taking all the weight
+
+    Returns
+    -------
+    BlendedPoses
+    """
+    Ra, ta = _unpack_pose(poses_a, "poses_a")
+    Rb, tb = _unpack_pose(poses_b, "poses_b")
+    F = len(Ra)
+    if len(Rb) != F:
+        raise InputError("blend_poses", f"chains have {F} and {len(Rb)} frames")
+    ra = np.broadcast_to(np.asarray(residuals_a, float), (F,))
+    rb = np.broadcast_to(np.asarray(residuals_b, float), (F,))
+    if np.any(ra < 0) or np.any(rb < 0):
+        raise InputError("blend_poses", "residuals must be non-negative")
+    va, vb = ra**2 + floor**2, rb**2 + floor**2
+    ok_a = np.all(np.isfinite(Ra), axis=(1, 2)) & np.all(np.isfinite(ta), axis=1) & np.isfinite(va)
+    ok_b = np.all(np.isfinite(Rb), axis=(1, 2)) & np.all(np.isfinite(tb), axis=1) & np.isfinite(vb)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        wb = np.where(ok_a & ok_b, va / (va + vb), np.where(ok_b, 1.0, np.where(ok_a, 0.0, np.nan)))
+        sd = np.where(ok_a & ok_b, np.sqrt(va * vb / (va + vb)), np.where(ok_b, np.sqrt(vb), np.where(ok_a, np.sqrt(va), np.nan)))
+    both = ok_a & ok_b
+    R = np.full((F, 3, 3), np.nan)
+    t = np.full((F, 3), np.nan)
+    R[ok_a & ~ok_b], t[ok_a & ~ok_b] = Ra[ok_a & ~ok_b], ta[ok_a & ~ok_b]
+    R[ok_b & ~ok_a], t[ok_b & ~ok_a] = Rb[ok_b & ~ok_a], tb[ok_b & ~ok_a]
+    if both.any():
+        qa = Rotation.from_matrix(Ra[both])
+        qb = Rotation.from_matrix(Rb[both])
+        rel = (qa.inv() * qb).as_rotvec()
+        R[both] = (qa * Rotation.from_rotvec(wb[both, None] * rel)).as_matrix()
+        t[both] = (1 - wb[both, None]) * ta[both] + wb[both, None] * tb[both]
+    return BlendedPoses(R, t, 1.0 - wb, wb, sd)
