@@ -1,0 +1,97 @@
+"""``personalize markers``: outputs against the motion phantom's truth, and bad input."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from kinematics.c3d import read_c3d, write_c3d
+from kinematics.storage import read_mot, read_trc
+from personalize.cli import main
+from phantoms import make_phantom
+from phantoms.motion import write_trials
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    d = tmp_path_factory.mktemp("phantom_motion")
+    write_trials(d, make_phantom(0), 0, rate=100, gait_trials=1, gait_cycles=1.5, crouch_angles=(), functional_ranges=(45,),
+                 functional_time_scale=0.5, gaps=True)
+    return d
+
+
+def _run(lab, out, method, *extra):
+    return main(["markers", str(lab / "gait_01.c3d"), "--method", method, "--subject", str(lab / "subject.json"),
+                 "--static", str(lab / "static.c3d"), "--out", str(out), *extra])
+
+
+@pytest.mark.parametrize("method", ["pig", "foot-to-hip"])
+def test_outputs_match_the_phantom_truth(lab, tmp_path, method):
+    out = tmp_path / method
+    assert _run(lab, out, method, "--functional", str(lab / "functional_hip.c3d")) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["angles.mot", "angles.png", "centres.trc", "report.json"]
+    ang = read_mot(out / "angles.mot")
+    truth = read_mot(lab / "truth" / "gait_01_angles.mot")
+    assert ang.columns == truth.columns and ang.in_degrees
+    assert ang.columns[:3] == ("hip_flexion_r", "hip_adduction_r", "hip_rotation_r")
+    for col, tol in (("knee_flexion_r", 6.0), ("hip_flexion_r", 6.0), ("knee_flexion_l", 6.0), ("ankle_flexion_r", 6.0)):
+        j = ang.columns.index(col)
+        e = ang.values[:, j] - truth.values[:, j]
+        assert np.sqrt(np.nanmean(e**2)) < tol, (col, e)
+    cen = read_trc(out / "centres.trc")
+    assert cen.names == ("RHJC", "LHJC", "RKJC", "LKJC", "RAJC", "LAJC")
+    tc = read_trc(lab / "truth" / "gait_01_centres.trc")
+    e = np.linalg.norm(cen.positions - tc.positions, axis=2)
+    assert np.nanmean(e[:, 0]) < 0.03 and np.nanmean(e[:, 2]) < 0.03
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["method"] == method and set(rep["hip_in_pelvis"]) == {"R", "L"}
+    # the long gap is reported, never invented: the frames of that marker's side are NaN
+    long = [g for g in rep["gaps"] if g["trial"] == "gait_01.c3d" and not g["filled"]]
+    assert long and long[0]["reason"] == "too long"
+    g = long[0]
+    side = "r" if g["marker"][0] == "R" else "l"
+    frames = (ang.time >= g["start_s"] - 1e-9) & (ang.time <= g["end_s"] + 1e-9)
+    affected = [j for j, c in enumerate(ang.columns) if c.endswith(f"_{side}") and c.startswith("knee")]
+    used = {"pig": ("THI", "KNE", "TIB", "ANK"), "foot-to-hip": ("THI", "KNE", "ANK", "HEE", "TOE")}[method]
+    if g["marker"][1:] in used:
+        assert np.isnan(ang.values[np.ix_(frames, affected)]).all()
+    else:
+        assert np.isfinite(ang.values[np.ix_(frames, affected)]).all()
+    assert np.isfinite(ang.values[~frames][:, affected]).all()
+    short = [g for g in rep["gaps"] if g["trial"] == "gait_01.c3d" and g["filled"]]
+    assert short and short[0]["frames"] == 5
+
+
+def test_missing_markers_are_named(lab, tmp_path, capsys):
+    tr = read_c3d(lab / "gait_01.c3d")
+    keep = [n for n in tr.names if n not in ("RTOE", "LKNE")]
+    bad = tmp_path / "bad.c3d"
+    write_c3d(bad, tr.subset(keep))
+    code = main(["markers", str(bad), "--method", "foot-to-hip", "--subject", str(lab / "subject.json"),
+                 "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and "RTOE" in err and "LKNE" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_static_of_another_subject_is_refused(lab, tmp_path, capsys):
+    other = tmp_path / "other"
+    other.mkdir()
+    write_trials(other, make_phantom(4, stature=1.45), 4, rate=20, gait_trials=0, crouch_angles=(), functional_ranges=(),
+                 static_duration=0.5)
+    code = main(["markers", str(lab / "gait_01.c3d"), "--method", "pig", "--subject", str(lab / "subject.json"),
+                 "--static", str(other / "static.c3d"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and "leg length" in err and "another subject" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_usage_errors(lab, tmp_path, capsys):
+    assert main(["markers", str(lab / "gait_01.c3d"), "--method", "pig", "--out", str(tmp_path / "o")]) == 2
+    assert "--subject" in capsys.readouterr().err
+    assert _run(lab, tmp_path / "o", "davis") == 2
+    assert "davis" in capsys.readouterr().err
+    assert main(["markers", str(lab / "nope.c3d"), "--method", "pig", "--subject", str(lab / "subject.json"),
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "not found" in capsys.readouterr().err
