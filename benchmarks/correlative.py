@@ -1,0 +1,200 @@
+"""Benchmark: the correlative-knee experiments of Pronost et al. (2010), section 4.1, on motion phantoms.
+
+Protocol (the seed's, on phantoms with soft-tissue artefact and 0.5 mm noise):
+
+* subject 1 = phantom seed A, subject 2 = phantom seed B (another anatomy and
+  stature, its own knee law and artefact);
+* training per subject: 5 gait cycles and one crouch at each foot angle
+  (0, 30, 60, 90, 120, 180 deg); test (subject 1 only): 10 other gait cycles
+  and 10 other crouches (foot angles in turn), 100 Hz;
+* on the training trials a free six-DOF knee is tracked by IK (every skin
+  marker, equal weights; the bone-fixed TIBM1/TIBM2 device markers are not
+  used); from its frames, per motion: the correlative law (3+DOF), the planar
+  spline knee (3DOF, natural cubic splines of flexion, gait2392 style) and the
+  hinge (1DOF: the planar knee's axis and its centre at zero flexion, as the
+  seed; ``1DOF-LS``, the least-squares constant knee, is reported as well);
+* Table 3: IK of the test trials with each knee (motion-specific models);
+  Table 4: subject 1's law vs subject 2's law scaled by eq. (3) (RGT-RLFE and
+  RMFE-RLFE distances: phantom landmarks RTRO, RKNE, RMFC); Table 5: gait law
+  on crouch trials and crouch law on gait trials.
+* Score (seed): sum over frames of the frame RMS distance between measured and
+  model markers (m, not normalised), averaged over the 10 trials; scored on the
+  analogues of the seed's seven right-leg markers (RGT -> RTHIP, RLFE -> RKNE,
+  RMFE -> RKNEM, RTT -> RTIBM3, RFH -> RTIB, RLATMAL -> RANK, RMEDMAL -> RANKM);
+  also reported on all nine right thigh and shank markers.
+
+Usage::
+
+    python benchmarks/correlative.py [--quick] [--seed-a 0] [--seed-b 1] [--json benchmarks/results/correlative.json]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from kinematics.atomic import write_text  # noqa: E402
+from kinematics.correlative import coefficient_table, json_text, scale_factor  # noqa: E402
+from kinematics.correlative_experiments import (  # noqa: E402
+    CorrelativeKnee, FreeKnee, compare_knees, reduction, score_results, summarize, tracking_table, train_knees,
+)
+
+#: the seed's seven markers and their phantom analogues
+SEED_MARKERS = {"RGT": "RTHIP", "RLFE": "RKNE", "RMFE": "RKNEM", "RTT": "RTIBM3", "RFH": "RTIB",
+                "RLATMAL": "RANK", "RMEDMAL": "RANKM"}
+LEG_MARKERS = tuple(f"R{m}" for m in ("THI", "THIP", "THIA", "KNE", "KNEM", "TIB", "TIBM3", "ANK", "ANKM"))
+#: seed section 4.1 reductions, percent (mean, sd)
+SEED_REDUCTIONS = {"gait": {"vs_1DOF": (44, 8), "vs_3DOF": (31, 5)}, "crouch": {"vs_1DOF": (71, 9), "vs_3DOF": (66, 6)}}
+ANGLES = (0, 30, 60, 90, 120, 180)
+
+
+def subject_trials(seed: int, stature: float, n_gait: int, n_crouch_repeats: int, rate: float, progress,
+                   sta_scale: float = 1.0):
+    from phantoms import make_phantom
+    from phantoms.motion import make_trials
+
+    ph = make_phantom(seed, stature=stature)
+    sk, trials, _ = make_trials(ph, seed, rate=rate, gait_trials=n_gait, gait_cycles=1.0, crouch_angles=ANGLES,
+                                crouch_repeats=n_crouch_repeats, crouch_duration=3.0, functional_ranges=(),
+                                sta_scale=sta_scale)
+    progress(f"phantom seed {seed}: {len(trials)} trials")
+    bt = ph.body_truth()["bones"]
+    landmarks = {s: {n: np.asarray(bt[f"femur_{s}"]["landmarks"][f"{s.upper()}{n}"], float) for n in ("TRO", "KNE", "MFC")}
+                 for s in ("r", "l")}
+    return sk, {t.name: t for t in trials}, landmarks
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed-a", type=int, default=0)
+    ap.add_argument("--seed-b", type=int, default=1)
+    ap.add_argument("--stature-b", type=float, default=1.62, help="stature of subject 2 (m)")
+    ap.add_argument("--rate", type=float, default=100.0)
+    ap.add_argument("--train-gait", type=int, default=5)
+    ap.add_argument("--test", type=int, default=10, help="test gait and crouch trials each")
+    ap.add_argument("--sta-scale", type=float, default=1.0, help="soft-tissue artefact amplitude factor (1 = phantom default)")
+    ap.add_argument("--quick", action="store_true", help="3 test trials, 50 Hz (smoke run)")
+    ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "correlative.json")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.test, args.rate, args.train_gait = 3, 50.0, 3
+
+    from rich.console import Console
+
+    con = Console(stderr=True)
+    log = lambda msg: con.log(msg)  # noqa: E731
+    t_start = time.perf_counter()
+    n_rep = 1 + int(np.ceil(args.test / len(ANGLES)))
+    skA, trA, lmA = subject_trials(args.seed_a, 1.75, args.train_gait + args.test, n_rep, args.rate, log,
+                                  args.sta_scale)
+    skB, trB, lmB = subject_trials(args.seed_b, args.stature_b, args.train_gait, 1, args.rate, log, args.sta_scale)
+    tracked = [n for n in next(iter(trA.values())).markers.names if not n.endswith(("TIBM1", "TIBM2"))]
+    scored = {"seed7": tuple(SEED_MARKERS.values()), "leg9": LEG_MARKERS}
+
+    def split(tr, n_train_gait, n_test):
+        train = {"gait": [tr[f"gait_{i + 1:02d}"].markers for i in range(n_train_gait)],
+                 "crouch": [tr[f"crouch_{a:03d}_01"].markers for a in ANGLES]}
+        test = {"gait": [tr[f"gait_{n_train_gait + i + 1:02d}"].markers for i in range(n_test)] if n_test else [],
+                "crouch": [tr[f"crouch_{ANGLES[i % len(ANGLES)]:03d}_{2 + i // len(ANGLES):02d}"].markers
+                           for i in range(n_test)]}
+        return train, test
+
+    trainA, testA = split(trA, args.train_gait, args.test)
+    trainB, _ = split(trB, args.train_gait, 0)
+
+    # ---- training: free six-DOF knee IK, then every knee model (per subject and motion)
+    knees = {}
+    for subj, sk, train in (("A", skA, trainA), ("B", skB, trainB)):
+        for motion in ("gait", "crouch"):
+            t = time.perf_counter()
+            knees[subj, motion] = train_knees(sk.model, train[motion], tracked)
+            log(f"subject {subj} {motion}: free-knee IK on {len(train[motion])} trials, "
+                f"marker RMS {1e3 * knees[subj, motion].training_rms:.2f} mm ({time.perf_counter() - t:.1f} s)")
+    s_scale = {s: scale_factor(lmA[s], lmB[s], "TRO", "KNE", "MFC") for s in ("r", "l")}
+    from2 = {motion: tuple(CorrelativeKnee(s, knees["B", motion].laws[s].scaled(s_scale[s]), "3+DOF from2")
+                           for s in ("r", "l")) for motion in ("gait", "crouch")}
+
+    # ---- IK of the test trials with every knee model
+    results = {}
+    for motion in ("gait", "crouch"):
+        other = "crouch" if motion == "gait" else "gait"
+        sets = dict(knees["A", motion].models)
+        sets["3+DOF from2"] = from2[motion]
+        sets[f"3+DOF {other} law"] = knees["A", other].models["3+DOF"]
+        sets["6DOF"] = (FreeKnee("r"), FreeKnee("l"))                       # floor: no knee model can do better
+        sets["true knee"] = tuple(CorrelativeKnee(s, skA.knee_laws[s], "true knee") for s in ("r", "l"))
+        t = time.perf_counter()
+        results[motion] = compare_knees(skA.model, sets, testA[motion], tracked,
+                                        progress=lambda lab, m=motion: log(f"  {m} test trials tracked with {lab}"))
+        log(f"{motion}: {len(sets)} knee models x {len(testA[motion])} trials ({time.perf_counter() - t:.1f} s)")
+
+    report = {"benchmark": "correlative", "seed": "Pronost, Sandholm & Thalmann 2010, section 4.1, Tables 3-5",
+              "units": "sum_rms_m: sum over frames of the frame RMS marker distance (m); mean_rms_m: mean frame RMS (m)",
+              "protocol": {"subject1_phantom_seed": args.seed_a, "subject2_phantom_seed": args.seed_b,
+                           "subject2_stature_m": args.stature_b, "rate_hz": args.rate,
+                           "training": {"gait": args.train_gait, "crouch": len(ANGLES)},
+                           "test": {"gait": args.test, "crouch": args.test}, "tracked_markers": tracked,
+                           "scored_markers": {k: list(v) for k, v in scored.items()},
+                           "seed_marker_analogues": SEED_MARKERS, "noise_sd_m": 0.0005, "soft_tissue_artefact_scale": args.sta_scale,
+                           "eq3_scale_factor": s_scale},
+              "scoring": {}}
+    tables_md = []
+    for sname, markers in scored.items():
+        sc = {m: score_results(results[m], testA[m], markers) for m in ("gait", "crouch")}
+        t3 = tracking_table({"Gait": sc["gait"], "Crouch": sc["crouch"]}, ("1DOF", "3DOF", "3+DOF"),
+                            f"Table 3 ({sname} markers): average sum of frame RMS distances (m) (mean frame RMS)")
+        t4 = tracking_table({"Gait": {"model1": sc["gait"]["3+DOF"], "model1from2": sc["gait"]["3+DOF from2"]},
+                             "Crouch": {"model1": sc["crouch"]["3+DOF"], "model1from2": sc["crouch"]["3+DOF from2"]}},
+                            ("model1", "model1from2"),
+                            f"Table 4 ({sname} markers): tracking errors (m) of model1 and model1from2")
+        t5 = tracking_table({"Gait": {"3+DOF gait": sc["gait"]["3+DOF"], "3+DOF crouch": sc["gait"]["3+DOF crouch law"]},
+                             "Crouch": {"3+DOF gait": sc["crouch"]["3+DOF gait law"], "3+DOF crouch": sc["crouch"]["3+DOF"]}},
+                            ("3+DOF gait", "3+DOF crouch"),
+                            f"Table 5 ({sname} markers): tracking errors (m) of motion-specific models")
+        red = {m: {"vs_1DOF": reduction(sc[m]["3+DOF"], sc[m]["1DOF"]), "vs_3DOF": reduction(sc[m]["3+DOF"], sc[m]["3DOF"]),
+                   "vs_1DOF-LS": reduction(sc[m]["3+DOF"], sc[m]["1DOF-LS"]),
+                   "3DOF_vs_1DOF": reduction(sc[m]["3DOF"], sc[m]["1DOF"]),
+                   "6DOF_floor_vs_1DOF": reduction(sc[m]["6DOF"], sc[m]["1DOF"]),
+                   "6DOF_floor_vs_3DOF": reduction(sc[m]["6DOF"], sc[m]["3DOF"])} for m in ("gait", "crouch")}
+        order = {m: bool(summarize(sc[m]["3+DOF"])["sum_rms_m_mean"] < summarize(sc[m]["3DOF"])["sum_rms_m_mean"]
+                         < summarize(sc[m]["1DOF"])["sum_rms_m_mean"]) for m in ("gait", "crouch")}
+        report["scoring"][sname] = {
+            "summary": {m: {lab: summarize(v) for lab, v in sc[m].items()} for m in ("gait", "crouch")},
+            "per_trial": {m: {lab: [s.to_dict() for s in v] for lab, v in sc[m].items()} for m in ("gait", "crouch")},
+            "reductions_percent_mean_sd": red, "seed_reductions_percent": SEED_REDUCTIONS,
+            "meets_seed_reductions": {m: {k: bool(red[m][k][0] >= SEED_REDUCTIONS[m][k][0]) for k in ("vs_1DOF", "vs_3DOF")}
+                                      for m in ("gait", "crouch")},
+            "ordering_correlative_lt_3dof_lt_1dof": order,
+            "tables_markdown": [t.to_markdown() for t in (t3, t4, t5)],
+        }
+        tables_md += [t3.to_markdown(), t4.to_markdown(), t5.to_markdown()]
+        lines = [f"{m}: 3+DOF vs 1DOF {red[m]['vs_1DOF'][0]:.0f} ({red[m]['vs_1DOF'][1]:.0f}) %, "
+                 f"vs 3DOF {red[m]['vs_3DOF'][0]:.0f} ({red[m]['vs_3DOF'][1]:.0f}) %, vs 1DOF-LS {red[m]['vs_1DOF-LS'][0]:.0f} %"
+                 f"  [seed {SEED_REDUCTIONS[m]['vs_1DOF'][0]} / {SEED_REDUCTIONS[m]['vs_3DOF'][0]} %; "
+                 f"bound set by the free 6-DOF knee: {red[m]['6DOF_floor_vs_1DOF'][0]:.0f} / {red[m]['6DOF_floor_vs_3DOF'][0]:.0f} %; "
+                 f"true phantom knee {1e3 * summarize(sc[m]['true knee'])['mean_rms_m']:.2f} mm, "
+                 f"6DOF {1e3 * summarize(sc[m]['6DOF'])['mean_rms_m']:.2f} mm]" for m in ("gait", "crouch")]
+        tables_md.append(f"Reductions ({sname} markers, mean (sd) over trials):\n" + "\n".join(lines) + "\n")
+    laws = {f"subject1 {m}": knees["A", m].laws["r"] for m in ("gait", "crouch")}
+    laws.update({f"subject2 {m} scaled": from2[m][0].law for m in ("gait", "crouch")})
+    laws["phantom truth"] = skA.knee_laws["r"]
+    tables_md.append(coefficient_table(laws, digits=4, with_sd=False).to_markdown())
+    report["laws_right_knee"] = {k: v.to_json() for k, v in laws.items()}
+    report["seconds"] = time.perf_counter() - t_start
+    text = "\n".join(tables_md)
+    print(text)
+    report["tables_markdown"] = text
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    write_text(args.json, json_text(report) + "\n")
+    print(f"wrote {args.json} ({report['seconds']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,450 @@
+"""Knee models compared by marker IK: the experiments of Pronost et al. (2010), section 4.1.
+
+Three knee models share one skeleton and differ only in how the knee's six
+coordinates (flexion ``a1``, ab/adduction ``a2``, axial rotation ``a3``;
+translations ``T = (tx, ty, tz)`` in the parent (femur) frame) are constrained:
+
+* ``1DOF`` hinge (`HingeKnee`): ``a2, a3, T`` constant, flexion free;
+* ``3DOF`` planar spline knee, gait2392 style (`PlanarSplineKnee`): ``a2, a3,
+  tz`` constant, the sagittal translations natural cubic splines of flexion,
+  ``tx = Sx(a1)``, ``ty = Sy(a1)`` (Yamaguchi & Zajac 1989; OpenSim gait2392);
+* ``3+DOF`` correlative knee (`CorrelativeKnee`): three free rotations and the
+  translations the linear law of seed eq. (1), ``T = C a + c0``.
+
+Every constraint goes through the engine's one mechanism: constant and linear
+relations are rows of `kinematics.coupling.LinearCoupling` (``C q = d``,
+eliminated in IK by the null-space parametrisation ``q = q_p + N z``), the
+splines are `CoordinateCoupler` dependents whose chain rule
+``dq_dep/dz = S'(a1) dq_a1/dz`` enters IK's Jacobian.
+
+Protocol (seed 3.2 and 4.1): a free six-DOF knee is tracked by IK on training
+trials; its per-frame coordinates give the laws (multiple linear regression),
+the splines and the constants (all least squares on the same frames).  The
+models are then compared by IK on held-out trials.  The score of a trial is
+the seed's: the sum over frames of the frame's RMS distance between measured
+and model markers (not normalised by frames or markers, metres), reported with
+the mean frame RMS.
+
+Units: radians, metres.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from .correlative import CorrelativeLaw, TextTable, fit_law
+from .coupling import CoordinateCoupler, LinearCoupling
+from .errors import FitError, InputError
+from .functions import NaturalCubicSpline
+from .ik import IKResult, solve_ik
+from .markers import MarkerTrial
+from .model import Model
+
+__all__ = [
+    "knee_rotations", "knee_translations", "knee_coordinates",
+    "HingeKnee", "PlanarSplineKnee", "CorrelativeKnee", "FreeKnee", "KneeKinematics",
+    "strip_knee_constraints", "with_knees", "free_knee_model",
+    "knee_kinematics", "fit_hinge_knee", "fit_planar_spline_knee", "fit_correlative_knee", "fit_spline_basis",
+    "TrialScore", "score_trial", "track", "summarize", "reduction",
+    "tracking_table", "TrainedKnees", "train_knees", "compare_knees", "score_results", "VARIANTS",
+]
+
+#: Column names of the seed's Table 3 (hinge, planar spline, correlative)
+VARIANTS = ("1DOF", "3DOF", "3+DOF")
+
+
+def knee_rotations(side: str) -> tuple[str, str, str]:
+    """Names of the knee rotations of `side` (flexion, adduction, rotation; rad)."""
+    return (f"knee_flexion_{side}", f"knee_adduction_{side}", f"knee_rotation_{side}")
+
+
+def knee_translations(side: str) -> tuple[str, str, str]:
+    """Names of the knee translations of `side` (anterior, proximal, lateral in the femur frame; m)."""
+    return (f"knee_tx_{side}", f"knee_ty_{side}", f"knee_tz_{side}")
+
+
+def knee_coordinates(side: str) -> tuple[str, ...]:
+    return knee_rotations(side) + knee_translations(side)
+
+
+def _constant_rows(coordinates: Sequence[str], values: Mapping[str, float]) -> LinearCoupling | None:
+    """Rows ``q_i = v_i`` (a held coordinate is a coupling with no independent)."""
+    out = None
+    for name, v in values.items():
+        row = LinearCoupling.correlative(coordinates, name, {}, float(v))
+        out = row if out is None else out.stack(row)
+    return out
+
+
+# --------------------------------------------------------------------------- knee models
+@dataclass(frozen=True)
+class HingeKnee:
+    """1-DOF knee: flexion free, the other five coordinates held at `fixed` (rad / m)."""
+
+    side: str
+    fixed: tuple[tuple[str, float], ...]
+    label: str = "1DOF"
+
+    @property
+    def n_dof(self) -> int:
+        return 1
+
+    def constraints(self, coordinates: Sequence[str]):
+        """(LinearCoupling rows, couplers) over `coordinates`."""
+        return _constant_rows(coordinates, dict(self.fixed)), ()
+
+
+@dataclass(frozen=True, eq=False)
+class PlanarSplineKnee:
+    """3-DOF planar knee (gait2392 style): ``tx = Sx(a1)``, ``ty = Sy(a1)``, the rest held.
+
+    Attributes
+    ----------
+    knots : (K,) flexion knots, rad (strictly increasing)
+    tx, ty : (K,) translations at the knots, m (natural cubic splines, linear outside)
+    fixed : ((name, value), ...) adduction, rotation and tz held (rad, m)
+    """
+
+    side: str
+    knots: np.ndarray
+    tx: np.ndarray
+    ty: np.ndarray
+    fixed: tuple[tuple[str, float], ...]
+    label: str = "3DOF"
+
+    def __post_init__(self):
+        for n in ("knots", "tx", "ty"):
+            a = np.array(getattr(self, n), dtype=float)
+            a.setflags(write=False)
+            object.__setattr__(self, n, a)
+
+    @property
+    def n_dof(self) -> int:
+        return 1
+
+    def splines(self) -> tuple[NaturalCubicSpline, NaturalCubicSpline]:
+        return NaturalCubicSpline(self.knots, self.tx), NaturalCubicSpline(self.knots, self.ty)
+
+    def translations(self, flexion) -> np.ndarray:
+        """(F, 2) tx, ty at flexion (F,) rad."""
+        sx, sy = self.splines()
+        return np.column_stack([sx(np.asarray(flexion, float)), sy(np.asarray(flexion, float))])
+
+    def constraints(self, coordinates: Sequence[str]):
+        flex = knee_rotations(self.side)[0]
+        tx, ty, _ = knee_translations(self.side)
+        sx, sy = self.splines()
+        couplers = (CoordinateCoupler(tx, (flex,), sx, f"{tx}_spline"),
+                    CoordinateCoupler(ty, (flex,), sy, f"{ty}_spline"))
+        return _constant_rows(coordinates, dict(self.fixed)), couplers
+
+
+@dataclass(frozen=True, eq=False)
+class CorrelativeKnee:
+    """3+DOF correlative knee: rotations free, translations the linear law (seed eq. 1/2)."""
+
+    side: str
+    law: CorrelativeLaw
+    label: str = "3+DOF"
+
+    @property
+    def n_dof(self) -> int:
+        return len(self.law.independent)
+
+    def constraints(self, coordinates: Sequence[str]):
+        return self.law.to_coupling(coordinates), ()
+
+
+@dataclass(frozen=True)
+class FreeKnee:
+    """6-DOF knee (no constraint): the lower bound of the tracking error any knee model can reach."""
+
+    side: str
+    label: str = "6DOF"
+
+    @property
+    def n_dof(self) -> int:
+        return 6
+
+    def constraints(self, coordinates: Sequence[str]):
+        return None, ()
+
+
+def strip_knee_constraints(model: Model, sides: Iterable[str]) -> Model:
+    """`model` without the coupling rows and couplers that involve the knee coordinates of `sides`."""
+    names = set()
+    for s in sides:
+        names.update(knee_coordinates(s))
+    couplings = model.couplings
+    if couplings is not None:
+        cols = [i for i, c in enumerate(couplings.coordinates) if c in names]
+        keep = ~np.any(couplings.matrix[:, cols] != 0, axis=1) if cols else np.ones(couplings.n_rows, bool)
+        couplings = (None if not keep.any() else
+                     LinearCoupling(couplings.coordinates, couplings.matrix[keep], couplings.rhs[keep],
+                                    tuple(l for l, k in zip(couplings.labels, keep) if k)))
+    couplers = tuple(cp for cp in model.couplers if not ({cp.dependent, *cp.independent} & names))
+    return model.replace(couplings=couplings, couplers=couplers)
+
+
+def free_knee_model(model: Model, sides: Iterable[str] = ("r", "l")) -> Model:
+    """The six-DOF (unconstrained) knee of the seed's data collection (section 3.2)."""
+    sides = tuple(sides)
+    missing = [c for s in sides for c in knee_coordinates(s) if c not in model.coordinate_names]
+    if missing:
+        raise InputError(model.name, f"model has no knee coordinate {', '.join(missing)} "
+                                     "(a six-coordinate knee: knee_flexion/adduction/rotation_<side>, knee_tx/ty/tz_<side>)")
+    return strip_knee_constraints(model, sides)
+
+
+def with_knees(model: Model, knees: Sequence) -> Model:
+    """`model` with the knee constraints replaced by `knees` (one knee model per side)."""
+    sides = [k.side for k in knees]
+    if len(set(sides)) != len(sides):
+        raise InputError(model.name, f"two knee models for one side ({sides})")
+    base = free_knee_model(model, sides)
+    names = base.coordinate_names
+    rows = base.couplings
+    couplers = list(base.couplers)
+    for k in knees:
+        r, c = k.constraints(names)
+        if r is not None:
+            rows = r.over(names) if rows is None else rows.stack(r.over(names)).over(names)
+        couplers.extend(c)
+    return base.replace(couplings=rows, couplers=tuple(couplers))
+
+
+# --------------------------------------------------------------------------- training data
+@dataclass(frozen=True, eq=False)
+class KneeKinematics:
+    """Per-frame knee coordinates from IK with a free knee (the seed's regression data).
+
+    rotations : (F, 3) rad (flexion, adduction, rotation); translations : (F, 3) m;
+    groups : (F,) trial label per frame; side : str
+    """
+
+    side: str
+    rotations: np.ndarray
+    translations: np.ndarray
+    groups: np.ndarray
+
+    @property
+    def n_frames(self) -> int:
+        return self.rotations.shape[0]
+
+
+def knee_kinematics(results: Sequence[IKResult], side: str, labels: Sequence[str] | None = None) -> KneeKinematics:
+    """Knee coordinates of `side` from free-knee IK results, frames the markers determined only."""
+    rot, tr, grp = [], [], []
+    for i, res in enumerate(results):
+        ix = [res.coordinates.index(c) for c in knee_coordinates(side)]
+        ok = res.solved & np.isfinite(res.q).all(axis=1)
+        if res.determined is not None:
+            ok &= res.determined
+        q = res.q[ok][:, ix]
+        rot.append(q[:, :3])
+        tr.append(q[:, 3:])
+        grp.append(np.full(q.shape[0], labels[i] if labels is not None else f"trial{i}", dtype=object))
+    if not rot or sum(len(r) for r in rot) == 0:
+        raise InputError(None, "no determined IK frame to learn the knee from")
+    return KneeKinematics(side, np.vstack(rot), np.vstack(tr), np.concatenate(grp))
+
+
+def fit_hinge_knee(kin: KneeKinematics, planar: "PlanarSplineKnee | None" = None,
+                   default_flexion: float = 0.0) -> HingeKnee:
+    """1-DOF knee from the training frames.
+
+    With `planar` (the seed's 1DOF, section 4.1): the same axis as the planar
+    knee (its held adduction, rotation and tz) and its knee centre at the
+    default pose, ``tx, ty = Sx(a1_0), Sy(a1_0)`` with ``a1_0 = default_flexion``.
+    Without: the least-squares constants of the training frames (their means,
+    minimising ``sum_f |q_c(f) - v_c|^2`` per held coordinate), the best
+    constant knee the same data allow (a stronger baseline than the seed's).
+    """
+    rn, tn = knee_rotations(kin.side), knee_translations(kin.side)
+    if planar is not None:
+        if planar.side != kin.side:
+            raise InputError(None, f"planar knee of side {planar.side!r} for a hinge of side {kin.side!r}")
+        tx, ty = planar.translations(np.array([float(default_flexion)]))[0]
+        vals = list(planar.fixed) + [(tn[0], tx), (tn[1], ty)]
+        return HingeKnee(kin.side, tuple((n, float(v)) for n, v in vals))
+    vals = [(rn[1], kin.rotations[:, 1].mean()), (rn[2], kin.rotations[:, 2].mean())]
+    vals += [(n, kin.translations[:, k].mean()) for k, n in enumerate(tn)]
+    return HingeKnee(kin.side, tuple((n, float(v)) for n, v in vals))
+
+
+def fit_spline_basis(knots: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(F, K) values at x of the natural cubic splines through unit knot values (the spline is linear in y)."""
+    K = len(knots)
+    return np.column_stack([NaturalCubicSpline(knots, np.eye(K)[k])(x) for k in range(K)])
+
+
+def fit_planar_spline_knee(kin: KneeKinematics, n_knots: int = 6) -> PlanarSplineKnee:
+    """Least-squares natural cubic splines ``tx(a1)``, ``ty(a1)`` on equally spaced flexion knots.
+
+    Model: ``t_d(f) = sum_k y_dk B_k(a1(f))`` with ``B_k`` the natural spline through
+    unit knot values; minimised ``sum_f (t_d(f) - sum_k y_dk B_k(a1(f)))^2`` per
+    direction d.  Knots span the training flexion range; the held adduction,
+    rotation and tz are their training means.
+    """
+    a1 = kin.rotations[:, 0]
+    lo, hi = float(np.min(a1)), float(np.max(a1))
+    if not hi - lo > 1e-3:
+        raise FitError(f"knee {kin.side}: flexion does not vary in the training frames ({lo:.4f}..{hi:.4f} rad)")
+    K = max(2, min(int(n_knots), kin.n_frames // 4))
+    knots = np.linspace(lo, hi, K)
+    B = fit_spline_basis(knots, a1)
+    Y, *_ = np.linalg.lstsq(B, kin.translations[:, :2], rcond=None)
+    rn, tn = knee_rotations(kin.side), knee_translations(kin.side)
+    fixed = ((rn[1], float(kin.rotations[:, 1].mean())), (rn[2], float(kin.rotations[:, 2].mean())),
+             (tn[2], float(kin.translations[:, 2].mean())))
+    return PlanarSplineKnee(kin.side, knots, Y[:, 0], Y[:, 1], fixed)
+
+
+def fit_correlative_knee(kin: KneeKinematics, joint: str | None = None) -> CorrelativeKnee:
+    """Seed eq. (1) by multiple linear regression on the free-knee frames (`kinematics.correlative.fit_law`)."""
+    law = fit_law(kin.rotations, kin.translations, knee_rotations(kin.side), knee_translations(kin.side),
+                  groups=kin.groups, joint=joint or f"knee_{kin.side}", source=f"knee_{kin.side} training frames")
+    return CorrelativeKnee(kin.side, law)
+
+
+# --------------------------------------------------------------------------- scoring
+@dataclass(frozen=True)
+class TrialScore:
+    """IK tracking error of one trial with one knee model.
+
+    total : sum over frames of the frame RMS over the scored markers, m (the seed's Table 3 value)
+    mean_rms : mean frame RMS, m
+    frames : frames scored
+    """
+
+    trial: str
+    model: str
+    total: float
+    mean_rms: float
+    frames: int
+
+    def to_dict(self) -> dict:
+        return {"trial": self.trial, "model": self.model, "sum_rms_m": self.total, "mean_rms_m": self.mean_rms,
+                "frames": self.frames}
+
+
+def score_trial(result: IKResult, scored: Sequence[str], trial: str = "", model: str = "") -> TrialScore:
+    """Seed 4.1 score: ``sum_f sqrt(mean_m |x_m(q_f) - y_m,f|^2)`` over the `scored` markers present."""
+    cols = [result.markers.index(m) for m in scored if m in result.markers]
+    if not cols:
+        raise InputError(trial or None, f"none of the scored markers {list(scored)} was tracked")
+    e = result.marker_errors[:, cols]
+    present = np.isfinite(e)
+    n = present.sum(axis=1)
+    ok = n > 0
+    rms = np.sqrt(np.where(present, e**2, 0.0).sum(axis=1)[ok] / n[ok])
+    return TrialScore(trial, model, float(rms.sum()), float(rms.mean()), int(ok.sum()))
+
+
+def track(model: Model, trials: Sequence[MarkerTrial], tracked: Sequence[str], **ik) -> list[IKResult]:
+    """Marker IK of each trial with equal weights on the `tracked` markers present (the seed's IK tool setting)."""
+    out = []
+    for tr in trials:
+        w = {m: 1.0 for m in tracked if m in tr.names}
+        out.append(solve_ik(model, tr, marker_weights=w, **ik))
+    return out
+
+
+def summarize(scores: Sequence[TrialScore]) -> dict:
+    """Mean (and sd) over trials of the total and mean frame RMS."""
+    t = np.array([s.total for s in scores])
+    r = np.array([s.mean_rms for s in scores])
+    return {"trials": len(scores), "sum_rms_m_mean": float(t.mean()), "sum_rms_m_sd": float(t.std(ddof=1)) if len(t) > 1 else 0.0,
+            "mean_rms_m": float(r.mean()), "frames": int(sum(s.frames for s in scores))}
+
+
+def reduction(better: Sequence[TrialScore], worse: Sequence[TrialScore]) -> tuple[float, float]:
+    """Per-trial error reduction ``1 - e_better / e_worse`` (percent): mean and sd over trials (seed 4.1)."""
+    if [s.trial for s in better] != [s.trial for s in worse]:
+        raise InputError(None, "reductions need the same trials for both models")
+    r = 100.0 * (1.0 - np.array([b.total for b in better]) / np.array([w.total for w in worse]))
+    return float(r.mean()), float(r.std(ddof=1)) if r.size > 1 else 0.0
+
+
+def _cell(scores: Sequence[TrialScore], digits: int) -> str:
+    s = summarize(scores)
+    return f"{s['sum_rms_m_mean']:.{digits}f} ({1e3 * s['mean_rms_m']:.2f} mm)"
+
+
+def tracking_table(scores: Mapping[str, Mapping[str, Sequence[TrialScore]]], columns: Sequence[str],
+                   title: str, corner: str = "Subject1", digits: int = 2) -> TextTable:
+    """Seed Table 3/4/5 form: rows motions, columns knee models.
+
+    Cells: mean over trials of the summed frame RMS (m), with the mean frame RMS in mm.
+
+    Parameters
+    ----------
+    scores : ``{row (motion): {column (model): [TrialScore, ...]}}``
+    """
+    rows = []
+    for motion, by_model in scores.items():
+        rows.append((motion,) + tuple(_cell(by_model[c], digits) if c in by_model else "" for c in columns))
+    return TextTable((corner,) + tuple(columns), tuple(rows), title)
+
+
+# --------------------------------------------------------------------------- protocol
+@dataclass(frozen=True, eq=False)
+class TrainedKnees:
+    """Knee models learnt from one training set (one per side each).
+
+    kinematics : side -> KneeKinematics (free-knee IK frames)
+    models : label (``1DOF``, ``1DOF-LS``, ``3DOF``, ``3+DOF``) -> tuple of knee models, one per side
+    training_rms : mean marker RMS of the free-knee IK on the training trials, m
+    """
+
+    kinematics: dict
+    models: dict
+    training_rms: float
+
+    @property
+    def laws(self) -> dict:
+        """side -> CorrelativeLaw."""
+        return {k.side: k.law for k in self.models["3+DOF"]}
+
+
+def train_knees(model: Model, trials: Sequence[MarkerTrial], tracked: Sequence[str], sides: Sequence[str] = ("r", "l"),
+                n_knots: int = 6, default_flexion: float = 0.0, **ik) -> TrainedKnees:
+    """Seed 3.2: free six-DOF knee IK on `trials`, then every knee model fitted on its frames.
+
+    Returns hinge (seed form, `1DOF`, and least-squares, `1DOF-LS`), planar spline
+    (`3DOF`) and correlative (`3+DOF`) knees for each side.
+    """
+    free = free_knee_model(model, sides)
+    res = track(free, trials, tracked, **ik)
+    labels = [t.source or f"trial{i}" for i, t in enumerate(trials)]
+    kins, models = {}, {"1DOF": [], "1DOF-LS": [], "3DOF": [], "3+DOF": []}
+    for s in sides:
+        kin = knee_kinematics(res, s, labels)
+        kins[s] = kin
+        planar = fit_planar_spline_knee(kin, n_knots)
+        models["3DOF"].append(planar)
+        models["1DOF"].append(fit_hinge_knee(kin, planar, default_flexion))
+        models["1DOF-LS"].append(replace(fit_hinge_knee(kin), label="1DOF-LS"))
+        models["3+DOF"].append(fit_correlative_knee(kin))
+    rms = float(np.nanmean(np.concatenate([r.rms for r in res])))
+    return TrainedKnees(kins, {k: tuple(v) for k, v in models.items()}, rms)
+
+
+def compare_knees(model: Model, knees: Mapping[str, Sequence], trials: Sequence[MarkerTrial], tracked: Sequence[str],
+                  progress: Callable[[str], None] | None = None, **ik) -> dict:
+    """IK of `trials` with each knee model set: ``{label: [IKResult per trial]}`` (score with `score_results`)."""
+    out = {}
+    for label, ks in knees.items():
+        out[label] = track(with_knees(model, ks), trials, tracked, **ik)
+        if progress is not None:
+            progress(label)
+    return out
+
+
+def score_results(results: Mapping[str, Sequence[IKResult]], trials: Sequence[MarkerTrial],
+                  scored: Sequence[str]) -> dict:
+    """``{label: [TrialScore per trial]}`` of `compare_knees` results over the `scored` markers."""
+    return {label: [score_trial(r, scored, t.source or f"trial{i}", label) for i, (r, t) in enumerate(zip(res, trials))]
+            for label, res in results.items()}

@@ -1,0 +1,146 @@
+"""Correlative knee in IK (kinematics.correlative_experiments): the seed's section 4.1 on a small phantom."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kinematics.correlative_experiments import (
+    CorrelativeKnee, HingeKnee, compare_knees, fit_correlative_knee, fit_planar_spline_knee, free_knee_model, knee_coordinates,
+    knee_kinematics, knee_rotations, knee_translations, score_results, score_trial, summarize, track, train_knees,
+    with_knees,
+)
+from kinematics.errors import FitError, InputError
+from kinematics.ik import coordinate_map
+from phantoms import make_phantom
+from phantoms.motion import make_trials
+
+ANGLES = (0, 60, 120)
+#: analogues of the seed's seven markers (RGT, RLFE, RMFE, RTT, RFH, RLATMAL, RMEDMAL)
+SCORED = ("RTHIP", "RKNE", "RKNEM", "RTIBM3", "RTIB", "RANK", "RANKM")
+
+
+@pytest.fixture(scope="module")
+def world():
+    ph = make_phantom(0)
+    sk, trials, _ = make_trials(ph, 0, rate=50, gait_trials=4, gait_cycles=1.0, crouch_angles=ANGLES, crouch_repeats=2,
+                                crouch_duration=2.0, functional_ranges=())
+    tr = {t.name: t for t in trials}
+    tracked = [n for n in trials[0].markers.names if not n.endswith(("TIBM1", "TIBM2"))]
+    train = {"gait": [tr["gait_01"].markers, tr["gait_02"].markers],
+             "crouch": [tr[f"crouch_{a:03d}_01"].markers for a in ANGLES]}
+    test = {"gait": [tr["gait_03"].markers, tr["gait_04"].markers],
+            "crouch": [tr[f"crouch_{a:03d}_02"].markers for a in ANGLES]}
+    return sk, tracked, train, test
+
+
+@pytest.fixture(scope="module")
+def experiment(world):
+    sk, tracked, train, test = world
+    out = {}
+    for motion in ("gait", "crouch"):
+        knees = train_knees(sk.model, train[motion], tracked)
+        sets = {k: knees.models[k] for k in ("1DOF", "3DOF", "3+DOF")}
+        res = compare_knees(sk.model, sets, test[motion], tracked)
+        out[motion] = (knees, res, score_results(res, test[motion], SCORED))
+    return out
+
+
+@pytest.mark.parametrize("motion", ["gait", "crouch"])
+def test_correlative_knee_tracks_better_than_planar_spline_better_than_hinge(experiment, motion):
+    _, _, scores = experiment[motion]
+    e = {k: summarize(v)["sum_rms_m_mean"] for k, v in scores.items()}
+    assert e["3+DOF"] < e["3DOF"] < e["1DOF"]
+    # per trial too, and by a margin the artefact-free floor would not explain away
+    for a, b, c in zip(scores["3+DOF"], scores["3DOF"], scores["1DOF"]):
+        assert a.total < b.total < c.total
+    assert e["3+DOF"] < 0.85 * e["1DOF"]
+
+
+def test_score_is_the_sum_of_frame_rms(experiment, world):
+    _, res, scores = experiment["gait"]
+    r = res["3+DOF"][0]
+    cols = [r.markers.index(m) for m in SCORED]
+    manual = np.sum(np.sqrt(np.nanmean(r.marker_errors[:, cols] ** 2, axis=1)))
+    assert scores["3+DOF"][0].total == pytest.approx(manual, rel=1e-12)
+    assert scores["3+DOF"][0].frames == r.q.shape[0]
+
+
+def test_ik_solutions_satisfy_every_knee_model_exactly(experiment):
+    knees, res, _ = experiment["crouch"]
+    names = res["1DOF"][0].coordinates
+    ix = {n: i for i, n in enumerate(names)}
+    for k in knees.models["3+DOF"]:
+        q = np.vstack([r.q for r in res["3+DOF"]])
+        law = k.law
+        pred = law.predict(q[:, [ix[n] for n in law.independent]])
+        np.testing.assert_allclose(q[:, [ix[n] for n in law.dependent]], pred, atol=1e-10)
+        # the rotations stay free: they vary over the crouches
+        assert np.ptp(q[:, ix[knee_rotations(k.side)[2]]]) > 0.02
+    for k in knees.models["3DOF"]:
+        q = np.vstack([r.q for r in res["3DOF"]])
+        tx, ty, tz = knee_translations(k.side)
+        np.testing.assert_allclose(q[:, [ix[tx], ix[ty]]], k.translations(q[:, ix[knee_rotations(k.side)[0]]]), atol=1e-10)
+        for n, v in k.fixed:
+            np.testing.assert_allclose(q[:, ix[n]], v, atol=1e-10)
+    for k in knees.models["1DOF"]:
+        q = np.vstack([r.q for r in res["1DOF"]])
+        for n, v in k.fixed:
+            np.testing.assert_allclose(q[:, ix[n]], v, atol=1e-10)
+        assert np.ptp(q[:, ix[knee_rotations(k.side)[0]]]) > 1.0   # flexion through the crouch
+
+
+def test_knee_models_remove_the_right_number_of_freedoms(experiment, world):
+    sk = world[0]
+    knees = experiment["gait"][0]
+    n = sk.model.n_q
+    assert coordinate_map(free_knee_model(sk.model)).n_z == n
+    assert coordinate_map(sk.model).n_z == n - 6                               # the phantom's own law
+    assert coordinate_map(with_knees(sk.model, knees.models["3+DOF"])).n_z == n - 6
+    assert coordinate_map(with_knees(sk.model, knees.models["3DOF"])).n_z == n - 10
+    assert coordinate_map(with_knees(sk.model, knees.models["1DOF"])).n_z == n - 10
+    # one side replaced, the other keeps the phantom's law
+    m = with_knees(sk.model, knees.models["1DOF"][:1])
+    assert coordinate_map(m).n_z == n - 8
+    assert set(m.couplings.labels) >= set(knee_translations("l"))
+
+
+def test_seed_hinge_sits_on_the_planar_knee_axis_at_zero_flexion(experiment):
+    knees = experiment["gait"][0]
+    for hinge, planar in zip(knees.models["1DOF"], knees.models["3DOF"]):
+        fixed = dict(hinge.fixed)
+        for n, v in planar.fixed:
+            assert fixed[n] == v
+        tx, ty, _ = knee_translations(hinge.side)
+        np.testing.assert_allclose([fixed[tx], fixed[ty]], planar.translations(np.array([0.0]))[0], atol=1e-15)
+
+
+def test_law_of_artefact_free_markers_is_the_phantom_law(world):
+    """Without artefact and noise the free-knee IK sees the true knee: the regression returns the phantom's law."""
+    sk, tracked, _, _ = world
+    _, trials, _ = make_trials(make_phantom(0), 0, rate=25, gait_trials=1, gait_cycles=1.0, crouch_angles=(0, 90, 180),
+                               crouch_duration=2.0, functional_ranges=(), sta=False, noise_sd=0.0, skeleton=sk)
+    dyn = [t.markers for t in trials if t.kind != "static"]
+    res = track(free_knee_model(sk.model), dyn, tracked, tolerance=1e-9)
+    for s in ("r", "l"):
+        kin = knee_kinematics(res, s)
+        law = fit_correlative_knee(kin).law
+        d = law.distance_to(sk.knee_laws[s], kin.rotations)
+        assert d.max() < 1e-8                                   # m, over the poses used
+        assert law.fit.rms.max() < 1e-8 and law.fit.valid
+
+
+def test_bad_knee_inputs(world, experiment):
+    sk = world[0]
+    knees = experiment["gait"][0]
+    with pytest.raises(InputError, match="no knee coordinate knee_flexion_x, .*knee_tz_x"):
+        free_knee_model(sk.model, ("x",))
+    with pytest.raises(InputError, match="two knee models"):
+        with_knees(sk.model, (knees.models["1DOF"][0], knees.models["3+DOF"][0]))
+    kin = knees.kinematics["r"]
+    flat = type(kin)("r", np.column_stack([np.full(kin.n_frames, 0.3), kin.rotations[:, 1:]]), kin.translations, kin.groups)
+    with pytest.raises(FitError, match="flexion does not vary"):
+        fit_planar_spline_knee(flat)
+    with pytest.raises(InputError, match="none of the scored markers"):
+        score_trial(experiment["gait"][1]["1DOF"][0], ["NOPE"])
+    assert isinstance(knees.models["1DOF"][0], HingeKnee) and isinstance(knees.models["3+DOF"][0], CorrelativeKnee)
+    assert set(knee_coordinates("r")) == set(knee_rotations("r") + knee_translations("r"))
