@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import Sequence
 
@@ -40,51 +39,15 @@ from .atomic import atomic_path
 from .correlative import CorrelativeLaw
 from .errors import InputError
 from .model import Model
+from .opensim_io import _opensim, polynomial_layout
 
 __all__ = ["polynomial_layout", "correlative_function", "add_correlative_constraints", "export_correlative_model",
            "add_to_osim", "OsimLawCheck", "verify_osim_law", "constraint_name"]
 
 
-def _opensim():
-    from .opensim_io import _opensim as load
-
-    return load()
-
-
 def constraint_name(dependent: str) -> str:
     """Name of the constraint that drives `dependent`."""
     return f"correlative_{dependent}"
-
-
-@lru_cache(maxsize=None)
-def polynomial_layout(k: int) -> tuple[int, ...]:
-    """Input multiplied by each order-1 coefficient of OpenSim's MultivariatePolynomialFunction.
-
-    Returns ``layout`` of length k: coefficient ``1 + j`` multiplies input
-    ``layout[j]`` (coefficient 0 is the constant).  Probed by evaluating unit
-    coefficient vectors at unit inputs.
-    """
-    osim = _opensim()
-    layout = []
-    for j in range(k):
-        f = osim.MultivariatePolynomialFunction()
-        f.setDimension(k)
-        f.setOrder(1)
-        v = osim.Vector(k + 1, 0.0)
-        v.set(j + 1, 1.0)
-        f.setCoefficients(v)
-        hits = []
-        for i in range(k):
-            x = osim.Vector(k, 0.0)
-            x.set(i, 1.0)
-            if abs(f.calcValue(x) - 1.0) < 1e-12:
-                hits.append(i)
-        if len(hits) != 1:
-            raise RuntimeError(f"OpenSim MultivariatePolynomialFunction order-1 layout not understood (k={k})")
-        layout.append(hits[0])
-    if sorted(layout) != list(range(k)):
-        raise RuntimeError("OpenSim MultivariatePolynomialFunction order-1 layout is not a permutation")
-    return tuple(layout)
 
 
 def correlative_function(slopes: Sequence[float], intercept: float):

@@ -18,6 +18,7 @@ CoordinateCouplerConstraints) and prints it.
 from __future__ import annotations
 
 import os
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,38 @@ def _opensim():
     except Exception:  # pragma: no cover - older bindings
         pass
     return opensim
+
+
+@lru_cache(maxsize=None)
+def polynomial_layout(k: int) -> tuple[int, ...]:
+    """Input multiplied by each order-1 coefficient of OpenSim's MultivariatePolynomialFunction.
+
+    Returns ``layout`` of length k: coefficient ``1 + j`` multiplies input
+    ``layout[j]`` (coefficient 0 is the constant).  OpenSim 4.6 stores the
+    order-1 terms with the inputs reversed; rather than assume it, the layout
+    is probed by evaluating unit coefficient vectors at unit inputs.
+    """
+    osim = _opensim()
+    layout = []
+    for j in range(k):
+        f = osim.MultivariatePolynomialFunction()
+        f.setDimension(k)
+        f.setOrder(1)
+        v = osim.Vector(k + 1, 0.0)
+        v.set(j + 1, 1.0)
+        f.setCoefficients(v)
+        hits = []
+        for i in range(k):
+            x = osim.Vector(k, 0.0)
+            x.set(i, 1.0)
+            if abs(f.calcValue(x) - 1.0) < 1e-12:
+                hits.append(i)
+        if len(hits) != 1:
+            raise RuntimeError(f"OpenSim MultivariatePolynomialFunction order-1 layout not understood (k={k})")
+        layout.append(hits[0])
+    if sorted(layout) != list(range(k)):
+        raise RuntimeError("OpenSim MultivariatePolynomialFunction order-1 layout is not a permutation")
+    return tuple(layout)
 
 
 def check_osim_file(path: str | os.PathLike) -> None:
@@ -98,8 +131,10 @@ def _function(osim, f, where: str, source) -> Function:
         mp = osim.MultivariatePolynomialFunction.safeDownCast(f)
         if mp.getOrder() == 1:
             c = [mp.getCoefficients().get(i) for i in range(mp.getCoefficients().size())]
-            # OpenSim orders order-1 terms as [1, x0, x1, ...].
-            return MultivariateLinear(c[1:], c[0])
+            slopes = np.zeros(len(c) - 1)
+            for j, i in enumerate(polynomial_layout(len(c) - 1)):
+                slopes[i] = c[j + 1]
+            return MultivariateLinear(slopes, c[0])
     raise InputError(source, f"{where}: unsupported OpenSim function type {name}")
 
 
@@ -270,8 +305,8 @@ def _to_osim_function(osim, f: Function):
         mp.setOrder(1)
         v = osim.Vector(f.n_inputs + 1, 0.0)
         v.set(0, float(f.intercept))
-        for i, c in enumerate(f.coefficients):
-            v.set(i + 1, float(c))
+        for j, i in enumerate(polynomial_layout(f.n_inputs)):
+            v.set(j + 1, float(f.coefficients[i]))
         mp.setCoefficients(v)
         return mp
     raise InputError(None, f"cannot export function {type(f).__name__} to OpenSim")
