@@ -15,6 +15,11 @@ from typing import Iterator
 
 from .errors import InputError
 
+# mkstemp creates private (0600) files; outputs get the usual permissions of the user's umask.
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+_FILE_MODE = 0o666 & ~_UMASK
+
 
 def inside(root: str | os.PathLike, relative: str | os.PathLike) -> Path:
     """Return ``root/relative``, refusing any path that escapes `root`.
@@ -44,6 +49,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     suffix = "".join(path.suffixes)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".partial" + suffix, dir=path.parent)
     os.close(fd)
+    os.chmod(tmp, _FILE_MODE)
     tmp_p = Path(tmp)
     try:
         yield tmp_p

@@ -283,8 +283,10 @@ def write_label_nifti(path: str | os.PathLike, labels: np.ndarray, affine_mm: np
 
 def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0,
                   seed: int = 0, fov=None, bones: Iterable[str] | None = None,
-                  progress: Callable[[str], None] | None = None) -> dict[str, Path]:
+                  progress: Callable[[str], None] | None = None, extra_truth: dict | None = None) -> dict[str, Path]:
     """Write ``labels.nii.gz``, ``label_map.json``, ``meshes/<bone>.ply`` (mm) and ``truth.json`` (m).
+
+    `extra_truth` entries (e.g. the motion phantom's knee laws) are merged into ``truth.json``.
 
     Returns the written paths by role.  Files are written atomically; use
     `kinematics.atomic.staged_dir` around this call to publish the folder at once.
@@ -306,5 +308,6 @@ def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e
     truth["image"] = {"file": "labels.nii.gz", "voxel_m": np.asarray(_check_voxel(voxel)).tolist(),
                       "noise": float(noise), "noise_seed": int(seed), "affine_units": "mm",
                       "shape": list(labels.shape), "meshes": "meshes/<bone>.ply in mm, scanner frame"}
+    truth.update(extra_truth or {})
     paths["truth"] = write_text(inside(out, "truth.json"), json.dumps(truth, indent=1) + "\n")
     return paths

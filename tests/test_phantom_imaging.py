@@ -143,7 +143,7 @@ def test_write_phantom_files(tmp_path, ph):
 def test_cli_phantom(tmp_path, capsys):
     out = tmp_path / "ph"
     code = main(["phantom", "--out", str(out), "--seed", "2", "--side", "r", "--voxel", "1", "1", "2",
-                 "--noise", "low", "--bones", "patella_r,talus_r"])
+                 "--noise", "low", "--bones", "patella_r,talus_r", "--no-motion"])
     assert code == 0
     assert "wrote phantom" in capsys.readouterr().out
     assert {p.name for p in out.iterdir()} == {"labels.nii.gz", "label_map.json", "meshes", "truth.json"}
@@ -151,8 +151,32 @@ def test_cli_phantom(tmp_path, capsys):
     assert truth["params"]["seed"] == 2
     assert "femur_l" not in truth["landmarks"]["bones"]
     np.testing.assert_allclose(np.diag(nib.load(out / "labels.nii.gz").affine)[:3], [1, 1, 2])
-    for bad in (["--noise", "loud"], ["--side", "both-ish"], ["--voxel", "0", "1", "1"], ["--bones", "femur_x"]):
+    for bad in (["--noise", "loud"], ["--side", "both-ish"], ["--voxel", "0", "1", "1"], ["--bones", "femur_x"],
+                ["--side", "r"]):
         code = main(["phantom", "--out", str(tmp_path / "bad"), *bad])
         err = capsys.readouterr().err
         assert code == 2 and err.startswith("error: ") and len(err.strip().splitlines()) == 1, (bad, err)
         assert not (tmp_path / "bad").exists()
+
+
+def test_cli_phantom_writes_a_subject_with_motion(tmp_path):
+    """The default phantom folder is a subject: trials, truth coordinates and the knee laws in truth.json."""
+    from kinematics.c3d import read_c3d
+    from kinematics.correlative import CorrelativeLaw
+    from kinematics.storage import read_mot
+
+    out = tmp_path / "subject"
+    assert main(["phantom", "--out", str(out), "--seed", "4", "--bones", "patella_r"]) == 0
+    names = {p.name for p in out.iterdir()}
+    assert {"static.c3d", "gait_01.c3d", "functional_hip.c3d", "subject.json", "truth", "truth.json"} <= names
+    assert any(n.startswith("crouch_090_") for n in names)
+    truth = json.loads((out / "truth.json").read_text())
+    law = CorrelativeLaw.from_json(truth["knee_law_r"])
+    mot = read_mot(out / "truth" / "gait_01.mot")
+    rot = mot.to_radians(["knee_flexion_r", "knee_adduction_r", "knee_rotation_r"])
+    angles = np.column_stack([rot.column(c) for c in ("knee_flexion_r", "knee_adduction_r", "knee_rotation_r")])
+    trans = np.column_stack([mot.column(c) for c in ("knee_tx_r", "knee_ty_r", "knee_tz_r")])
+    np.testing.assert_allclose(law.predict(angles), trans, atol=1e-6)
+    static = read_c3d(out / "static.c3d")
+    assert {"RASI", "LASI", "RKNE", "RANK", "RHEE"} <= set(static.names)
+    assert truth["params"]["seed"] == 4 and "femur_r" in truth["landmarks"]["bones"]

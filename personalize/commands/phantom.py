@@ -39,14 +39,16 @@ def phantom(
     stature: float = typer.Option(1.75, "--stature", help="Standing height in metres."),
     placement: str = typer.Option("random", "--placement", help="Scanner placement: random (from the seed) or identity."),
     bones: str = typer.Option("", "--bones", help="Comma-separated subset of bones to write (default: all)."),
+    motion: bool = typer.Option(True, "--motion/--no-motion",
+                                help="Also write motion trials (static, gait, crouch, functional hip C3Ds, truth/*.mot); needs --side both."),
 ) -> None:
-    """Write a synthetic lower-body phantom: label volume, exact meshes and ground truth."""
+    """Write a synthetic subject: label volume, exact meshes, motion trials (C3D) and ground truth."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from kinematics.atomic import staged_dir
     from phantoms import make_phantom
-    from phantoms.imaging import write_phantom
+    from phantoms.subject import write_subject
 
     side_key = side.strip().lower()
     if side_key not in ("both", "r", "l"):
@@ -65,6 +67,8 @@ def phantom(
         unknown = [b for b in subset if b not in ph.bone_names]
         if unknown:
             raise InputError("--bones", f"unknown bone(s) {', '.join(unknown)} (this phantom has {', '.join(ph.bone_names)})")
+    if motion and side_key != "both":
+        raise InputError("--side", "motion trials need both legs: use --side both or --no-motion")
     n_steps = 2 * len(subset or ph.bone_names) + 1
     console = Console(stderr=True)
     with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), console=console,
@@ -75,8 +79,8 @@ def phantom(
             prog.update(task, description=msg, advance=1)
 
         with staged_dir(out) as stage:
-            write_phantom(stage, ph, voxel=tuple(v / 1000.0 for v in voxel), noise=level, seed=seed,
-                          bones=subset, progress=report)
+            write_subject(stage, ph, voxel=tuple(v / 1000.0 for v in voxel), noise=level, seed=seed,
+                          bones=subset, motion=motion, progress=report)
     typer.echo(f"wrote phantom (seed {seed}, {len(subset or ph.bone_names)} bones, voxel {list(voxel)} mm, noise {level}) to {out}")
 
 
