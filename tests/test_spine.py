@@ -1,0 +1,183 @@
+"""Coupled spine (Raunhardt & Boulic 2007): model structure, constraints in IK, section-5 experiments (short)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kinematics.coupling import initial_projector
+from kinematics.errors import InputError
+from kinematics.joints import SwingJoint
+from kinematics.prioritized import ConstraintSet, LinearConstraint, RecruitingError
+from kinematics.spine import (KinematicTasks, balanced_posture_tasks, isolated_spine, isolated_spine_tasks,
+                              mannequin, periodic_drift, spine_distance, spine_layout, spine_solver,
+                              swing_components, torsion_direction_changes, vertebral_twist)
+
+HANIM = ([f"vl{i}" for i in range(5, 0, -1)] + [f"vt{i}" for i in range(12, 0, -1)]
+         + [f"vc{i}" for i in range(7, 0, -1)])
+
+
+@pytest.fixture(scope="module")
+def full_coupled():
+    return isolated_spine("full", coupled=True)
+
+
+@pytest.fixture(scope="module")
+def isolated_runs():
+    """Experiment 5.1 run once per variant: (model, solver, list of configurations per step)."""
+    runs = {}
+    for coupled in (True, False):
+        model = isolated_spine("full", coupled)
+        ik = spine_solver(model, isolated_spine_tasks(model))
+        q = model.default_q
+        qs = [q]
+        for _ in range(25):
+            q = ik.step(q).q
+            qs.append(q)
+        runs[coupled] = (model, ik, qs)
+    return runs
+
+
+def test_full_spine_structure(full_coupled):
+    m = full_coupled
+    assert spine_layout("full").joints == tuple(HANIM)
+    swing = [j for j in m.joints if isinstance(j, SwingJoint)]
+    twist = [j for j in m.joints if j.name in HANIM and not isinstance(j, SwingJoint)]
+    assert len(swing) == 17 and len(twist) == 7
+    cons = ConstraintSet.from_model(m)
+    assert (m.n_q, len(cons.b), len(cons.h)) == (41, 32, 12)
+    # each equality removes one dof: 9 left (flexion, bending, torsion per region)
+    assert m.n_q - np.linalg.matrix_rank(cons.C) == 9
+    # joint limits enforced only on the first joint of each region (swing vl5 vt12 vc7, twist vl2 vt8 vc6)
+    clamped = sorted({c.name.split("_")[0] for c in m.coordinates if c.clamped})
+    assert clamped == sorted(["vl5", "vt12", "vc7", "vl2", "vt8", "vc6"])
+
+
+def test_simplified_spine_structure():
+    m = isolated_spine("simplified", coupled=True)
+    swing = [j for j in m.joints if isinstance(j, SwingJoint)]
+    twist = [j for j in m.joints if j.kind == "revolute"]
+    cons = ConstraintSet.from_model(m)
+    assert (len(swing), len(twist), m.n_q, len(cons.b), len(cons.h)) == (8, 5, 21, 12, 12)
+    unc = mannequin("simplified", coupled=False)
+    assert sum(j.kind == "expmap" for j in unc.joints) == 8 + 2      # 8 vertebral ball joints + 2 shoulders
+
+
+def test_projector_matches_shared_coupling_mechanism(full_coupled):
+    cons = ConstraintSet.from_model(full_coupled)
+    ik = spine_solver(full_coupled, isolated_spine_tasks(full_coupled))
+    np.testing.assert_allclose(ik._Z0 @ ik._Z0.T, initial_projector(cons.C), atol=1e-12)
+
+
+def test_swing_has_no_twist_and_twist_reads_revolute(full_coupled):
+    m = full_coupled
+    rng = np.random.default_rng(3)
+    q = np.zeros(m.n_q)
+    names = m.coordinate_names
+    for i, n in enumerate(names):
+        q[i] = rng.uniform(-0.2, 0.2)
+    tw = vertebral_twist(m, q)
+    sw = swing_components(m, q)
+    layout = spine_layout("full")
+    for reg in layout.regions:
+        for k, j in enumerate(reg.joints):
+            if j in reg.twist:
+                assert tw[reg.name][k] == pytest.approx(q[names.index(f"{j}_rotation")], abs=1e-12)
+                np.testing.assert_allclose(sw[reg.name][k], 0.0, atol=1e-12)
+            else:
+                assert tw[reg.name][k] == pytest.approx(0.0, abs=1e-12)
+                # swing rotation vector components are the exponential-map coordinates
+                np.testing.assert_allclose(sw[reg.name][k], [q[names.index(f"{j}_extension")],
+                                                             q[names.index(f"{j}_bending")]], atol=1e-12)
+
+
+def test_isolated_spine_constraints_hold_every_step(isolated_runs):
+    model, ik, qs = isolated_runs[True]
+    cons = ik.constraints
+    for q in qs[1:]:
+        assert np.max(np.abs(cons.equality_residual(q))) < 1e-10
+        assert np.max(cons.inequality_excess(q)) <= 1e-12
+        # clamped limits never violated; the coupled (unclamped) ones stay in range through the ratios
+        assert np.all(q >= model.lower - 1e-12) and np.all(q <= model.upper + 1e-12)
+
+
+def test_isolated_spine_coupled_keeps_regional_shape(isolated_runs):
+    """Fig. 4/6: coupled swings keep one sign per region; the uncoupled spine bends in an S."""
+    def sign_changes(model, q):
+        n = 0
+        for s in swing_components(model, q).values():
+            for col in s.T:
+                v = col[np.abs(col) > 1e-6]
+                n += int(np.sum(np.sign(v[1:]) != np.sign(v[:-1])))
+        return n
+    m_c, ik_c, qs_c = isolated_runs[True]
+    m_u, ik_u, qs_u = isolated_runs[False]
+    assert sign_changes(m_c, qs_c[-1]) == 0
+    assert sign_changes(m_u, qs_u[-1]) > 0
+    # high-priority orientation reached by both; the coupled position task cannot be met fully (seed 5.1)
+    e_c = ik_c.step(qs_c[-1]).errors
+    e_u = ik_u.step(qs_u[-1]).errors
+    assert e_c[0] < 1e-5 and e_u[0] < 1e-5
+    assert e_u[1] < 1e-5 < e_c[1]
+
+
+@pytest.fixture(scope="module")
+def balanced():
+    out = {}
+    for coupled in (True, False):
+        m = mannequin("simplified", coupled)
+        ik = spine_solver(m, balanced_posture_tasks(m, KinematicTasks(m)))
+        res = ik.solve(m.default_q, max_iterations=200, tol=1e-6)
+        out[coupled] = (m, ik, res)
+    return out
+
+
+def test_balanced_posture_torsion_direction(balanced):
+    m, ik, res = balanced[True]
+    assert res.converged
+    assert np.max(np.abs(ik.constraints.equality_residual(res.q))) < 1e-10
+    assert sum(torsion_direction_changes(m, res.q).values()) == 0
+    mu, _, ru = balanced[False]
+    assert ru.converged
+    assert sum(torsion_direction_changes(mu, ru.q).values()) >= 1
+
+
+def test_recruiting_rule_on_mannequin():
+    """A head task below hands that do not recruit the cervical joints violates eq. (4)."""
+    m = mannequin("simplified", True)
+    kt = KinematicTasks(m)
+    tasks = balanced_posture_tasks(m, kt)
+    bad = [t if "hand" not in t.name else type(t)(t.name, t.function, t.priority, t.ancestors, t.ancestors)
+           for t in tasks]
+    with pytest.raises(RecruitingError, match=r"eq\. \(4\).*vc"):
+        spine_solver(m, bad)
+
+
+def test_periodic_drift_short_direction():
+    """Experiment 5.2.2, 40 cycles: the coupled spine drifts much less than an unbounded ball-joint spine."""
+    kw = dict(cycles=40, steps_per_cycle=12, checkpoints=(40,), settle=30)
+    c = periodic_drift(mannequin("simplified", True), **kw)
+    u = periodic_drift(mannequin("simplified", False, limit_spine=False), **kw)
+    assert c["max_equality_residual"] < 1e-10
+    assert c["max_inequality_or_limit_excess"] <= 1e-12 and u["max_inequality_or_limit_excess"] <= 1e-12
+    assert u["drift_spine_rad"][40] > 2.0 * c["drift_spine_rad"][40]
+
+
+def test_spine_distance_is_geodesic(full_coupled):
+    m = full_coupled
+    q = np.zeros(m.n_q)
+    q2 = q.copy()
+    q2[m.coordinate_names.index("vt8_rotation")] = 0.3
+    q2[m.coordinate_names.index("vl5_extension")] = -0.4
+    assert spine_distance(m, q2, q) == pytest.approx(0.5, abs=1e-12)
+
+
+def test_bad_spine_input():
+    with pytest.raises(InputError, match="unknown spine kind"):
+        spine_layout("cervical-only")
+    with pytest.raises(InputError, match="only the swing/twist spine can be coupled"):
+        mannequin("simplified", coupled=True, joint_style="ball")
+    m = isolated_spine("simplified", True)
+    with pytest.raises(InputError, match="'vl9_extension' does not exist"):
+        ConstraintSet.from_model(m, [LinearConstraint({"vl9_extension": 1.0}, 0.0)])
+    with pytest.raises(InputError, match="inconsistent"):
+        ConstraintSet.from_model(m, [LinearConstraint({"vl3_extension": 1.0, "vl5_extension": -1.0}, 0.1)])
