@@ -35,16 +35,12 @@ from typing import Sequence
 import numpy as np
 
 from .errors import InputError
-from .fk import _as_q, _points_jacobian, forward_kinematics
+from .fk import as_q, forward_kinematics, points_jacobian
 from .joints import Transform
 from .model import GROUND, Model
-from .transmission import FrameState, ScalarState
+from .transmission import FrameState, ScalarState, in_frame
 
 __all__ = ["Chord", "ChordChain", "ChordPath", "MovingPoint", "ViaCondition", "PathTension", "load_osim_paths"]
-
-
-def _mtv(R, x):
-    return np.einsum("...ji,...j->...i", R, x)
 
 
 def _unit(d, where="chord"):
@@ -78,7 +74,7 @@ class Chord:
     def jacobian(self, K0: FrameState, K1: FrameState) -> np.ndarray:
         """J (N, 12): ld = J [omega0; v0; omega1; v1] (twists decomposed in their frames)."""
         _, e = _unit(K1.point(self.p1) - K0.point(self.p0))
-        e0, e1 = _mtv(K0.R, e), _mtv(K1.R, e)
+        e0, e1 = in_frame(K0.R, e), in_frame(K1.R, e)
         return np.concatenate([-np.cross(self.p0, e0), -e0, np.cross(self.p1, e1), e1], axis=1)
 
     def do_force(self, K0: FrameState, K1: FrameState, F) -> None:
@@ -231,7 +227,7 @@ class ChordPath:
         x = np.einsum("npij,npj->npi", R, loc) + positions[:, idx]
         Jx = None
         if st is not None:
-            Jx = _points_jacobian(model, st, idx, x)
+            Jx = points_jacobian(model, st, idx, x)
             for i, d in dloc.items():
                 Jx[:, i] += np.einsum("nij,njq->niq", R[:, i], d)
         active = np.ones((N, P), bool)
@@ -251,14 +247,14 @@ class ChordPath:
 
     def active_points(self, model: Model, q) -> np.ndarray:
         """(N, P) (or (P,)) mask of the via points that belong to the path at each pose."""
-        q2, single = _as_q(model, q)
+        q2, single = as_q(model, q)
         st = forward_kinematics(model, q2)
         active = self._via(model, q2, st.rotations, st.positions)[4]
         return active[0] if single else active
 
     def length(self, model: Model, q) -> np.ndarray:
         """Path length l = sum_i |x_i+1 - x_i| over the active via points (m): (N,) or scalar."""
-        q2, single = _as_q(model, q)
+        q2, single = as_q(model, q)
         st = forward_kinematics(model, q2)
         _, _, x, _, active = self._via(model, q2, st.rotations, st.positions)
         l = np.empty(len(q2))
@@ -268,7 +264,7 @@ class ChordPath:
 
     def length_jacobian(self, model: Model, q):
         """Length l (N,) and dl/dq (N, n_q) = sum_i e_i^T (J_x,i+1 - J_x,i); moment arms are -dl/dq."""
-        q2, single = _as_q(model, q)
+        q2, single = as_q(model, q)
         st = forward_kinematics(model, q2, jacobian=True)
         _, _, x, Jx, active = self._via(model, q2, st.rotations, st.positions, st)
         l, J = np.empty(len(q2)), np.empty((len(q2), model.n_q))
@@ -307,7 +303,7 @@ class ChordPath:
         the last, an intermediate via point along the bisector of its two
         segments (frictionless guidance); inactive conditional points get 0.
         """
-        q2, single = _as_q(model, q)
+        q2, single = as_q(model, q)
         st = forward_kinematics(model, q2)
         _, _, x, _, active = self._via(model, q2, st.rotations, st.positions)
         F = self._point_forces(x, active, tension)
@@ -361,18 +357,11 @@ def load_osim_paths(path, model: Model | None = None) -> tuple[dict, dict]:
     paths : dict name -> ChordPath (via points in their body frames, m)
     skipped : dict name -> reason
     """
-    import os
+    from .opensim_io import (function_from_opensim, import_opensim, open_osim_model, transform_from_opensim,
+                             vec_from_opensim)
 
-    from .opensim_io import _function, _opensim, _transform, _vec, check_osim_file
-
-    check_osim_file(path)
-    osim = _opensim()
-    try:
-        om = osim.Model(os.fspath(path))
-        om.initSystem()
-    except Exception as exc:
-        msg = str(exc).strip().splitlines()
-        raise InputError(path, f"OpenSim cannot load the model: {msg[0] if msg else type(exc).__name__}") from None
+    om = open_osim_model(path)
+    osim = import_opensim()
     ground = om.getGround().getName()
     paths, skipped = {}, {}
     ms = om.getMuscles()
@@ -389,12 +378,12 @@ def load_osim_paths(path, model: Model | None = None) -> tuple[dict, dict]:
             kind = app.getConcreteClassName()
             frame = app.getParentFrame()
             base = frame.findBaseFrame().getName()
-            X = _transform(frame.findTransformInBaseFrame())
+            X = transform_from_opensim(frame.findTransformInBaseFrame())
             bodies.append(GROUND if base == ground else base)
             mv, cd = None, None
             if kind in ("PathPoint", "ConditionalPathPoint"):
                 pp = osim.PathPoint.safeDownCast(app)
-                pts.append(X.apply(_vec(pp.get_location())))
+                pts.append(X.apply(vec_from_opensim(pp.get_location())))
                 if kind == "ConditionalPathPoint":
                     c = osim.ConditionalPathPoint.safeDownCast(app)
                     cd = ViaCondition(c.getCoordinate().getName(), c.get_range(0), c.get_range(1))
@@ -402,7 +391,8 @@ def load_osim_paths(path, model: Model | None = None) -> tuple[dict, dict]:
                 mp = osim.MovingPathPoint.safeDownCast(app)
                 fns, names = [], []
                 for ax in "xyz":
-                    f = _function(osim, getattr(mp, f"get_{ax}_location")(), f"{mu.getName()} {app.getName()}", path)
+                    f = function_from_opensim(osim, getattr(mp, f"get_{ax}_location")(),
+                                              f"{mu.getName()} {app.getName()}", path)
                     has = getattr(mp, f"has{ax.upper()}Coordinate")()
                     fns.append(f)
                     names.append(getattr(mp, f"get{ax.upper()}Coordinate")().getName() if has and f.n_inputs else None)

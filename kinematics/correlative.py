@@ -41,7 +41,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from .atomic import atomic_path
+from .atomic import atomic_path, write_text
 from .errors import FitError, InputError
 
 __all__ = [
@@ -410,9 +410,7 @@ class CorrelativeLaw:
 
     def write(self, path: str | os.PathLike) -> Path:
         """Atomically write ``to_json()`` to `path`."""
-        with atomic_path(path) as tmp:
-            tmp.write_text(self.dumps() + "\n", encoding="utf-8")
-        return Path(path)
+        return write_text(path, self.dumps() + "\n")
 
     def as_linear_forms(self) -> list[tuple[str, tuple[str, ...], np.ndarray, float]]:
         """One ``(dependent, independents, slopes (k,), constant)`` per dependent: seed eq. (2),

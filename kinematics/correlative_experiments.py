@@ -177,13 +177,7 @@ def strip_knee_constraints(model: Model, sides: Iterable[str]) -> Model:
     names = set()
     for s in sides:
         names.update(knee_coordinates(s))
-    couplings = model.couplings
-    if couplings is not None:
-        cols = [i for i, c in enumerate(couplings.coordinates) if c in names]
-        keep = ~np.any(couplings.matrix[:, cols] != 0, axis=1) if cols else np.ones(couplings.n_rows, bool)
-        couplings = (None if not keep.any() else
-                     LinearCoupling(couplings.coordinates, couplings.matrix[keep], couplings.rhs[keep],
-                                    tuple(l for l, k in zip(couplings.labels, keep) if k)))
+    couplings = None if model.couplings is None else model.couplings.without(names)
     couplers = tuple(cp for cp in model.couplers if not ({cp.dependent, *cp.independent} & names))
     return model.replace(couplings=couplings, couplers=couplers)
 

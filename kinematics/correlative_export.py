@@ -35,11 +35,12 @@ from typing import Sequence
 
 import numpy as np
 
-from .atomic import atomic_path
 from .correlative import CorrelativeLaw
 from .errors import InputError
+from .functions import Linear, MultivariateLinear
 from .model import Model
-from .opensim_io import _opensim, polynomial_layout
+from .opensim_io import (add_coupler_constraint, check_osim_file, function_to_opensim, import_opensim,
+                         polynomial_layout, to_opensim, write_osim)
 
 __all__ = ["polynomial_layout", "correlative_function", "add_correlative_constraints", "export_correlative_model",
            "add_to_osim", "OsimLawCheck", "verify_osim_law", "constraint_name"]
@@ -55,22 +56,12 @@ def correlative_function(slopes: Sequence[float], intercept: float):
 
     One input: ``LinearFunction``; more: order-1 ``MultivariatePolynomialFunction``.
     """
-    osim = _opensim()
+    osim = import_opensim()
     c = np.asarray(slopes, float).ravel()
     k = c.size
     if k == 0:
         raise InputError(None, "a correlative DOF needs at least one independent coordinate")
-    if k == 1:
-        f = osim.LinearFunction(float(c[0]), float(intercept))
-    else:
-        f = osim.MultivariatePolynomialFunction()
-        f.setDimension(k)
-        f.setOrder(1)
-        v = osim.Vector(k + 1, 0.0)
-        v.set(0, float(intercept))
-        for j, i in enumerate(polynomial_layout(k)):
-            v.set(j + 1, float(c[i]))
-        f.setCoefficients(v)
+    f = function_to_opensim(osim, Linear(float(c[0]), float(intercept)) if k == 1 else MultivariateLinear(c, intercept))
     # Self-check at a few points: the function OpenSim will evaluate equals the law.
     rng = np.random.default_rng(0)
     for x in rng.uniform(-1.5, 1.5, size=(3, k)):
@@ -96,7 +87,7 @@ def add_correlative_constraints(om, laws: Sequence[CorrelativeLaw], replace: boo
     InputError
         A law names a coordinate the model lacks, or a coordinate is driven twice.
     """
-    osim = _opensim()
+    osim = import_opensim()
     cs = om.getCoordinateSet()
     have = {cs.get(i).getName() for i in range(cs.getSize())}
     deps = [d for law in laws for d in law.dependent]
@@ -122,19 +113,9 @@ def add_correlative_constraints(om, laws: Sequence[CorrelativeLaw], replace: boo
     names = []
     for law in laws:
         for dep, ind, slopes, c0 in law.as_linear_forms():
-            cc = osim.CoordinateCouplerConstraint()
-            cc.setName(constraint_name(dep))
-            cc.setDependentCoordinateName(dep)
-            arr = osim.ArrayStr()
-            for n in ind:
-                arr.append(n)
-            cc.setIndependentCoordinateNames(arr)
-            f = correlative_function(slopes, c0)
-            cc.setFunction(f)
-            f.thisown = False          # the constraint owns a copy-by-pointer: keep Python from freeing it
-            om.addConstraint(cc)
+            add_coupler_constraint(osim, om, constraint_name(dep), dep, ind, correlative_function(slopes, c0))
             cs.get(dep).setDefaultLocked(False)
-            names.append(cc.getName())
+            names.append(constraint_name(dep))
     # Default pose on the laws, so that the file's defaults already satisfy them.
     for law in laws:
         a = np.array([cs.get(n).getDefaultValue() for n in law.independent])
@@ -144,14 +125,6 @@ def add_correlative_constraints(om, laws: Sequence[CorrelativeLaw], replace: boo
     return names
 
 
-def _print(om, path: str | os.PathLike) -> Path:
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        if not om.printToXML(os.fspath(tmp)):
-            raise InputError(path, "OpenSim could not write the model")
-    return path
-
-
 def export_correlative_model(model: Model, laws: Sequence[CorrelativeLaw], path: str | os.PathLike) -> Path:
     """Write `model` to .osim with the correlative `laws` as CoordinateCouplerConstraints.
 
@@ -159,9 +132,6 @@ def export_correlative_model(model: Model, laws: Sequence[CorrelativeLaw], path:
     coordinates are dropped (the laws replace them); the rest of the model goes
     through `kinematics.opensim_io.to_opensim`.
     """
-    from .coupling import LinearCoupling
-    from .opensim_io import to_opensim
-
     deps = {d for law in laws for d in law.dependent}
     for law in laws:
         for n in law.independent + law.dependent:
@@ -169,30 +139,23 @@ def export_correlative_model(model: Model, laws: Sequence[CorrelativeLaw], path:
                 model.coordinate_index(n)
             except KeyError:
                 raise InputError(os.fspath(path), f"law {law.joint!r}: model {model.name!r} has no coordinate {n!r}") from None
-    cp = model.couplings
-    if cp is not None:
-        cols = [i for i, c in enumerate(cp.coordinates) if c in deps]
-        keep = ~np.any(cp.matrix[:, cols] != 0, axis=1) if cols else np.ones(cp.n_rows, bool)
-        cp = None if not keep.any() else LinearCoupling(cp.coordinates, cp.matrix[keep], cp.rhs[keep],
-                                                        tuple(l for l, k in zip(cp.labels, keep) if k))
+    cp = None if model.couplings is None else model.couplings.without(deps)
     couplers = tuple(c for c in model.couplers if c.dependent not in deps)
     om = to_opensim(model.replace(couplings=cp, couplers=couplers))
     add_correlative_constraints(om, laws, source=os.fspath(path))
-    return _print(om, path)
+    return write_osim(om, path)
 
 
 def add_to_osim(src: str | os.PathLike, laws: Sequence[CorrelativeLaw], out: str | os.PathLike) -> Path:
     """Read the OpenSim model `src`, add the correlative constraints, write `out` (atomically)."""
-    from .opensim_io import check_osim_file
-
     check_osim_file(src)
-    osim = _opensim()
+    osim = import_opensim()
     try:
         om = osim.Model(os.fspath(src))
     except Exception as exc:
         raise InputError(src, f"OpenSim cannot load the model ({str(exc).splitlines()[0] if str(exc) else exc})") from None
     add_correlative_constraints(om, laws, source=os.fspath(src))
-    return _print(om, out)
+    return write_osim(om, out)
 
 
 @dataclass(frozen=True)
@@ -223,7 +186,7 @@ def verify_osim_law(path: str | os.PathLike, laws: Sequence[CorrelativeLaw], pos
         Default: uniform draws over +-0.3 of each coordinate's range around its default
         (seeded by `seed`); the dependents start 5 mm / 0.05 rad off the law.
     """
-    osim = _opensim()
+    osim = import_opensim()
     om = osim.Model(os.fspath(path))
     state = om.initSystem()
     cs = om.getCoordinateSet()

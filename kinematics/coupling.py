@@ -27,18 +27,12 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .errors import InputError
-from .functions import Function
+from .functions import Function, read_only
 
 __all__ = [
     "LinearCoupling", "LinearInequalities", "CoordinateCoupler",
     "initial_projector", "restoring_variation", "null_space_parametrization",
 ]
-
-
-def _ro(a) -> np.ndarray:
-    a = np.array(a, dtype=float)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,8 +61,8 @@ class LinearCoupling:
             raise ValueError(f"coupling matrix {C.shape} / rhs {d.shape} do not match {len(self.coordinates)} coordinates")
         labels = tuple(self.labels) or tuple(f"row{i}" for i in range(C.shape[0]))
         object.__setattr__(self, "coordinates", tuple(self.coordinates))
-        object.__setattr__(self, "matrix", _ro(C))
-        object.__setattr__(self, "rhs", _ro(d))
+        object.__setattr__(self, "matrix", read_only(C))
+        object.__setattr__(self, "rhs", read_only(d))
         object.__setattr__(self, "labels", labels)
 
     @classmethod
@@ -99,6 +93,16 @@ class LinearCoupling:
                 continue
             C[:, coordinates.index(name)] = self.matrix[:, j]
         return LinearCoupling(coordinates, C, self.rhs, self.labels)
+
+    def without(self, coordinates) -> "LinearCoupling | None":
+        """The rows that involve none of `coordinates` (None when no row is left)."""
+        names = set(coordinates)
+        cols = [i for i, c in enumerate(self.coordinates) if c in names]
+        keep = ~np.any(self.matrix[:, cols] != 0, axis=1) if cols else np.ones(self.n_rows, bool)
+        if not keep.any():
+            return None
+        return LinearCoupling(self.coordinates, self.matrix[keep], self.rhs[keep],
+                              tuple(l for l, k in zip(self.labels, keep) if k))
 
     def stack(self, other: "LinearCoupling") -> "LinearCoupling":
         """Rows of both couplings (over the union of their coordinates, self's order first)."""
@@ -136,8 +140,8 @@ class LinearInequalities:
         if G.shape[1] != len(self.coordinates) or h.shape != (G.shape[0],):
             raise ValueError("inequality matrix/rhs do not match the coordinates")
         object.__setattr__(self, "coordinates", tuple(self.coordinates))
-        object.__setattr__(self, "matrix", _ro(G))
-        object.__setattr__(self, "rhs", _ro(h))
+        object.__setattr__(self, "matrix", read_only(G))
+        object.__setattr__(self, "rhs", read_only(h))
         object.__setattr__(self, "labels", tuple(self.labels) or tuple(f"ineq{i}" for i in range(G.shape[0])))
 
     def over(self, coordinates: Sequence[str]) -> "LinearInequalities":

@@ -133,8 +133,9 @@ def opensim_inverse_dynamics(osim_model, coordinates: Sequence[str], q, qd, qdd)
     tau : (N, n) in the column order of `coordinates` (Simbody's mobility
     order is mapped by probing each coordinate's speed slot).
     """
-    import opensim
+    from .opensim_io import import_opensim
 
+    opensim = import_opensim()
     q, qd, qdd = (np.atleast_2d(np.asarray(a, float)) for a in (q, qd, qdd))
     s = osim_model.initSystem()
     cs = osim_model.getCoordinateSet()

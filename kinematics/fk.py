@@ -28,17 +28,27 @@ from .model import Model
 __all__ = [
     "KinematicState", "forward_kinematics", "marker_positions", "marker_jacobian",
     "point_positions", "point_jacobian", "frame_pose", "frame_jacobian", "com_position", "com_jacobian",
-    "body_pose",
+    "body_pose", "as_q", "points_jacobian", "column_scatter", "cross",
 ]
 
 
-def _as_q(model: Model, q) -> tuple[np.ndarray, bool]:
+def as_q(model: Model, q) -> tuple[np.ndarray, bool]:
+    """Coordinates as an (N, n_q) float array and whether `q` was a single pose (n_q,).
+
+    Raises
+    ------
+    ValueError
+        `q` is not of shape (n_q,) or (N, n_q).
+    """
     q = np.asarray(q, dtype=float)
     single = q.ndim == 1
     q2 = q[None, :] if single else q
     if q2.ndim != 2 or q2.shape[1] != model.n_q:
         raise ValueError(f"q must have shape (n_q,) or (N, n_q) with n_q = {model.n_q}; got {q.shape}")
     return q2, single
+
+
+_as_q = as_q        # former private name, kept for existing importers
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,7 +76,7 @@ class KinematicState:
 
 def forward_kinematics(model: Model, q, jacobian: bool = False) -> KinematicState:
     """Body poses for every pose in q (n_q,) or (N, n_q); with ``jacobian`` also the column screws."""
-    q2, _ = _as_q(model, q)
+    q2, _ = as_q(model, q)
     N, B = q2.shape[0], model.n_bodies
     Rw = np.empty((N, B, 3, 3))
     pw = np.empty((N, B, 3))
@@ -108,15 +118,26 @@ def forward_kinematics(model: Model, q, jacobian: bool = False) -> KinematicStat
             frames.append((R_WF, p_WM))
             col += k
     if jacobian and K:
-        v0 -= _cross(omega, porig)               # screw at the ground origin: v0 = v_M - omega x p_WM
+        v0 -= cross(omega, porig)                # screw at the ground origin: v0 = v_M - omega x p_WM
     return KinematicState(q2, Rw, pw, omega, v0, tuple(frames) if jacobian else None)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a x b over the last axis with broadcasting (faster than np.cross for small batches)."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+_cross = cross                  # former private name, kept for existing importers
+
+
+def column_scatter(model: Model) -> np.ndarray:
+    """Matrix A (K, n_q) with A[k, column_coordinate[k]] = 1: sums joint-coordinate columns onto coordinates."""
+    K = model.column_coordinate.size
+    A = np.zeros((K, model.n_q))
+    A[np.arange(K), model.column_coordinate] = 1.0
+    return A
 
 
 def _squeeze(a, single):
@@ -129,14 +150,19 @@ def point_positions(model: Model, state: KinematicState, bodies: np.ndarray, poi
     return np.einsum("npij,pj->npi", R, points) + state.positions[:, bodies]
 
 
-def _points_jacobian(model: Model, state: KinematicState, bodies: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Jacobian (N, P, 3, n_q) of world points x (N,P,3) fixed on `bodies`."""
+def points_jacobian(model: Model, state: KinematicState, bodies: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Jacobian (N, P, 3, n_q) of world points x (N,P,3) fixed on `bodies` (P,).
+
+    `state` must come from ``forward_kinematics(..., jacobian=True)``; x is
+    usually ``point_positions(model, state, bodies, points)``.
+    """
     mask = model.body_columns[bodies].astype(float)            # (P,K)
-    cols = _cross(state.omega[:, None, :, :], x[:, :, None, :]) + state.v0[:, None, :, :]   # (N,P,K,3)
+    cols = cross(state.omega[:, None, :, :], x[:, :, None, :]) + state.v0[:, None, :, :]   # (N,P,K,3)
     cols *= mask[None, :, :, None]
-    A = np.zeros((model.column_coordinate.size, model.n_q))
-    A[np.arange(model.column_coordinate.size), model.column_coordinate] = 1.0
-    return np.einsum("npkc,kq->npcq", cols, A)
+    return np.einsum("npkc,kq->npcq", cols, column_scatter(model))
+
+
+_points_jacobian = points_jacobian      # former private name, kept for existing importers
 
 
 def _marker_arrays(model: Model, markers: Sequence[str] | None):
@@ -149,7 +175,7 @@ def _marker_arrays(model: Model, markers: Sequence[str] | None):
 
 def marker_positions(model: Model, q, markers: Sequence[str] | None = None) -> np.ndarray:
     """Marker positions in ground (m): (M,3) for q of shape (n_q,), (N,M,3) for (N,n_q)."""
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     st = forward_kinematics(model, q2)
     bodies, offs = _marker_arrays(model, markers)
     return _squeeze(point_positions(model, st, bodies, offs), single)
@@ -163,27 +189,27 @@ def marker_jacobian(model: Model, q, markers: Sequence[str] | None = None):
     x : (N, M, 3) (or (M, 3) for a single pose), metres
     J : (N, M, 3, n_q) (or (M, 3, n_q)), metres per coordinate unit
     """
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     st = forward_kinematics(model, q2, jacobian=True)
     bodies, offs = _marker_arrays(model, markers)
     x = point_positions(model, st, bodies, offs)
-    J = _points_jacobian(model, st, bodies, x)
+    J = points_jacobian(model, st, bodies, x)
     return _squeeze(x, single), _squeeze(J, single)
 
 
 def point_jacobian(model: Model, q, body: str, point=(0.0, 0.0, 0.0)):
     """Position (N,3) and Jacobian (N,3,n_q) of a point fixed on `body` (coordinates in the body frame)."""
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     st = forward_kinematics(model, q2, jacobian=True)
     b = np.array([model.body_index(body)])
     x = point_positions(model, st, b, np.asarray(point, float).reshape(1, 3))
-    J = _points_jacobian(model, st, b, x)
+    J = points_jacobian(model, st, b, x)
     return _squeeze(x[:, 0], single), _squeeze(J[:, 0], single)
 
 
 def body_pose(model: Model, q, body: str):
     """Rotation (N,3,3) and origin (N,3) of `body` in ground."""
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     st = forward_kinematics(model, q2)
     b = model.body_index(body)
     return _squeeze(st.rotations[:, b], single), _squeeze(st.positions[:, b], single)
@@ -202,21 +228,19 @@ def frame_jacobian(model: Model, q, body: str, point=(0.0, 0.0, 0.0)) -> np.ndar
     Rows 0-2: angular velocity of the body in ground per unit qdot; rows 3-5:
     velocity of the point in ground.  Orientation tasks use rows 0-2.
     """
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     st = forward_kinematics(model, q2, jacobian=True)
     b = model.body_index(body)
     x = point_positions(model, st, np.array([b]), np.asarray(point, float).reshape(1, 3))
-    Jv = _points_jacobian(model, st, np.array([b]), x)[:, 0]
+    Jv = points_jacobian(model, st, np.array([b]), x)[:, 0]
     mask = model.body_columns[b].astype(float)
-    A = np.zeros((model.column_coordinate.size, model.n_q))
-    A[np.arange(model.column_coordinate.size), model.column_coordinate] = 1.0
-    Jw = np.einsum("nkc,k,kq->ncq", st.omega, mask, A)
+    Jw = np.einsum("nkc,k,kq->ncq", st.omega, mask, column_scatter(model))
     return _squeeze(np.concatenate([Jw, Jv], axis=1), single)
 
 
 def com_position(model: Model, q) -> np.ndarray:
     """Whole-body centre of mass in ground (N,3) (m)."""
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     st = forward_kinematics(model, q2)
     m = np.array([b.mass for b in model.bodies])
     com = np.array([b.com for b in model.bodies])
@@ -226,12 +250,12 @@ def com_position(model: Model, q) -> np.ndarray:
 
 def com_jacobian(model: Model, q):
     """Centre of mass (N,3) and its Jacobian (N,3,n_q): the mass-weighted mean of body com Jacobians."""
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     st = forward_kinematics(model, q2, jacobian=True)
     m = np.array([b.mass for b in model.bodies])
     com = np.array([b.com for b in model.bodies])
     bodies = np.arange(model.n_bodies)
     x = point_positions(model, st, bodies, com)
-    J = _points_jacobian(model, st, bodies, x)
+    J = points_jacobian(model, st, bodies, x)
     w = m / m.sum()
     return _squeeze(np.einsum("b,nbi->ni", w, x), single), _squeeze(np.einsum("b,nbiq->niq", w, J), single)

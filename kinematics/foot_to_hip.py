@@ -35,7 +35,7 @@ import numpy as np
 from .errors import FitError, InputError
 from .functional import CentreEstimate, centre_transformation
 from .markers import MarkerTrial
-from .pig import SegmentPose
+from .pig import SegmentPose, unit_vectors
 from .subject import SubjectMeasurements
 
 __all__ = ["FootToHipCalibration", "ShankEstimate", "calibrate", "knee_ankle_axes", "seed_femur_frame",
@@ -43,11 +43,6 @@ __all__ = ["FootToHipCalibration", "ShankEstimate", "calibrate", "knee_ankle_axe
 
 #: markers foot-to-hip needs on each side (plus the pelvis: ASI and PSI or SACR)
 REQUIRED_MARKERS = ("THI", "KNE", "ANK", "HEE", "TOE")
-
-
-def _unit(v):
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
 def rotate_about(v: np.ndarray, axis: np.ndarray, angle) -> np.ndarray:
@@ -120,13 +115,13 @@ def knee_ankle_axes(kne, ank, hee, toe, d_knee: float, d_ankle: float, side: str
     right = side.upper()[0] == "R"
     v = kne - ank
     d = np.linalg.norm(v, axis=-1)
-    u_t = _unit(v)
-    u_f = _unit(toe - hee)
+    u_t = unit_vectors(v)
+    u_f = unit_vectors(toe - hee)
     if foot_offset:
         u_f = rotate_about(u_f, u_t, foot_offset)
     # heel-toe points forward, the shank line up: forward x up points to the subject's left
     n = np.cross(u_f, u_t) if right else np.cross(u_t, u_f)
-    n = _unit(n - np.sum(n * u_t, -1, keepdims=True) * u_t)
+    n = unit_vectors(n - np.sum(n * u_t, -1, keepdims=True) * u_t)
     with np.errstate(invalid="ignore"):
         sa = (d_knee - d_ankle * np.cos(axis_rotation)) / d
         sa = np.where(np.abs(sa) <= 1, sa, np.nan)
@@ -141,7 +136,7 @@ def seed_femur_frame(knee, knee_axis, thigh_marker, side: str) -> SegmentPose:
     (e3 = ±y), x = unit(y × (THI - knee)) = e1 (anterior), z = x × y = e2 (proximal)."""
     right = side.upper()[0] == "R"
     y = -knee_axis if right else knee_axis
-    x = _unit(np.cross(y, np.asarray(thigh_marker, float) - knee))
+    x = unit_vectors(np.cross(y, np.asarray(thigh_marker, float) - knee))
     z = np.cross(x, y)
     return SegmentPose(np.asarray(knee, float), np.stack([x, y, z], axis=-1))
 
@@ -189,16 +184,16 @@ def calibrate(subject: SubjectMeasurements, static: MarkerTrial | None = None) -
             continue
         M = static.marker
         kne, ank = M(f"{s}KNE"), M(f"{s}ANK")
-        u_t = _unit(kne - ank)
+        u_t = unit_vectors(kne - ank)
         if f"{s}ANKM" in static.names:
-            u_k = _unit(kne - M(f"{s}KNEM"))
-            u_a = _unit(ank - M(f"{s}ANKM"))
+            u_k = unit_vectors(kne - M(f"{s}KNEM"))
+            u_a = unit_vectors(ank - M(f"{s}ANKM"))
             p = _signed_angle(u_k, u_a, u_t)
             ok = np.isfinite(p)
             if ok.sum() >= 3:
                 phi[s], phi_sd[s] = float(np.median(p[ok])), float(np.std(p[ok]))
         est = knee_ankle_axes(kne, ank, M(f"{s}HEE"), M(f"{s}TOE"), dk[s], da[s], s, 0.0, phi[s])
-        b = _signed_angle(est.knee_axis, _unit(kne - M(f"{s}KNEM")), u_t)
+        b = _signed_angle(est.knee_axis, unit_vectors(kne - M(f"{s}KNEM")), u_t)
         ok = np.isfinite(b)
         if ok.sum() < 3:
             raise InputError(static.source, f"{s} knee/ankle/foot markers never visible together in the static trial")

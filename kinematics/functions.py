@@ -21,11 +21,12 @@ import numpy as np
 
 __all__ = [
     "Function", "Constant", "Linear", "NaturalCubicSpline", "SimmSpline",
-    "Multiplier", "MultivariateLinear",
+    "Multiplier", "MultivariateLinear", "read_only",
 ]
 
 
-def _ro(a, dtype=float) -> np.ndarray:
+def read_only(a, dtype=float) -> np.ndarray:
+    """A read-only copy of `a` (the arrays of immutable models, joints and functions)."""
     a = np.array(a, dtype=dtype)
     a.setflags(write=False)
     return a
@@ -117,8 +118,8 @@ class _PiecewiseCubic(Function):
     d: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
-        x = _ro(self.x)
-        y = _ro(self.y)
+        x = read_only(self.x)
+        y = read_only(self.y)
         if x.ndim != 1 or x.shape != y.shape or x.size < 2:
             raise ValueError("spline needs matching 1-D x and y with at least 2 points")
         if np.any(np.diff(x) <= 0):
@@ -126,9 +127,9 @@ class _PiecewiseCubic(Function):
         object.__setattr__(self, "x", x)
         object.__setattr__(self, "y", y)
         b, c, d = self._coefficients(x, y)
-        object.__setattr__(self, "b", _ro(b))
-        object.__setattr__(self, "c", _ro(c))
-        object.__setattr__(self, "d", _ro(d))
+        object.__setattr__(self, "b", read_only(b))
+        object.__setattr__(self, "c", read_only(c))
+        object.__setattr__(self, "d", read_only(d))
 
     @staticmethod
     def _coefficients(x, y):
@@ -269,7 +270,7 @@ class MultivariateLinear(Function):
     intercept: float = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "coefficients", _ro(np.atleast_1d(self.coefficients)))
+        object.__setattr__(self, "coefficients", read_only(np.atleast_1d(self.coefficients)))
 
     @property
     def n_inputs(self) -> int:  # type: ignore[override]

@@ -51,7 +51,7 @@ import numpy as np
 
 from .coupling import null_space_parametrization
 from .errors import InputError
-from .fk import _as_q, _cross, forward_kinematics, marker_jacobian, marker_positions
+from .fk import as_q, cross, forward_kinematics, marker_jacobian, marker_positions
 from .joints import matrix_to_euler_xyz
 from .markers import MarkerTrial
 from .model import Model
@@ -148,7 +148,6 @@ def coordinate_map(model: Model, limits: str = "clamped", locked: bool = True,
     """
     if limits not in ("clamped", "all", "none"):
         raise ValueError("limits must be 'clamped', 'all' or 'none'")
-    names = model.coordinate_names
     dep = [model.coordinate_index(cp.dependent) for cp in model.couplers]
     if len(set(dep)) != len(dep):
         raise InputError(model.name, "a coordinate is the dependent of two couplers")
@@ -220,7 +219,7 @@ def marker_task(model: Model, q, targets, weights=None, markers: Sequence[str] |
     r : (N, 3M) (or (3M,) for one pose), metres
     J : (N, 3M, n_q) (or (3M, n_q))
     """
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     names = model.marker_names if markers is None else tuple(markers)
     y = np.asarray(targets, float).reshape(q2.shape[0] if np.ndim(targets) == 3 else 1, len(names), 3)
     w = np.ones(len(names)) if weights is None else np.asarray(weights, float)
@@ -236,7 +235,7 @@ def marker_task(model: Model, q, targets, weights=None, markers: Sequence[str] |
 
 def coordinate_task(model: Model, q, targets: Mapping[str, float], weights: Mapping[str, float]):
     """r_c = sqrt(w_c) (q_c - target_c) and its Jacobian (rows of the identity)."""
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     names = list(targets)
     idx = np.array([model.coordinate_index(c) for c in names], dtype=int)
     sw = np.sqrt(np.array([weights[c] for c in names], float))
@@ -262,22 +261,16 @@ def orientation_task(model: Model, q, body: str, target_rotation, weight: float 
     from scipy.spatial.transform import Rotation
 
     from .fk import frame_jacobian
-    from .joints import skew
+    from .joints import left_jacobian_inverse_so3
 
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     st = forward_kinematics(model, q2)
     R = st.rotations[:, model.body_index(body)]
     Rt = np.broadcast_to(np.asarray(target_rotation, float), R.shape)
     e = Rotation.from_matrix(R @ np.swapaxes(Rt, 1, 2)).as_rotvec()
     Jw = frame_jacobian(model, q2, body)[:, :3]
-    th = np.linalg.norm(e, axis=1)[:, None, None]
-    K = skew(e)
-    small = th < 1e-6
-    ths = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
-    Jinv = np.eye(3) - 0.5 * K + c * (K @ K)
     sw = np.sqrt(weight)
-    e, J = sw * e, sw * (Jinv @ Jw)
+    e, J = sw * e, sw * (left_jacobian_inverse_so3(e) @ Jw)
     return (e[0], J[0]) if single else (e, J)
 
 
@@ -285,7 +278,7 @@ def com_task(model: Model, q, target, weight: float = 1.0):
     """Whole-body centre-of-mass error sqrt(w) (c(q) - target) (m) and its Jacobian (N,3,n_q)."""
     from .fk import com_jacobian
 
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     c, J = com_jacobian(model, q2)
     sw = np.sqrt(weight)
     e, J = sw * (c - np.asarray(target, float)), sw * J
@@ -328,18 +321,10 @@ def read_ik_setup(path: str | os.PathLike) -> IKSetup:
     rotational values in radians as in OpenSim; ``from_file`` is rejected),
     ``time_range``, ``accuracy``, ``model_file``, ``marker_file``.
     """
-    from defusedxml import ElementTree as ET
-    from defusedxml.common import DefusedXmlException
+    from .opensim_io import read_xml
 
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "IK setup file not found")
-    try:
-        root = ET.parse(path).getroot()
-    except DefusedXmlException as exc:
-        raise InputError(path, f"refusing unsafe XML ({type(exc).__name__})") from None
-    except Exception as exc:
-        raise InputError(path, f"not an OpenSim IK setup: the file is not XML ({exc})") from None
+    root = read_xml(path, "IK setup file not found", "not an OpenSim IK setup: the file is not XML")
     tool = root if root.tag == "InverseKinematicsTool" else root.find("InverseKinematicsTool")
     if tool is None:
         raise InputError(path, "not an OpenSim IK setup: no <InverseKinematicsTool> element")
@@ -428,7 +413,7 @@ def check_trial_scale(model: Model, trial: MarkerTrial, markers: Sequence[str] |
     for n in names:
         by_body.setdefault(model.marker(n).body, []).append(n)
     ratios = []
-    for body, ms in by_body.items():
+    for ms in by_body.values():
         for a in range(len(ms)):
             for b in range(a + 1, len(ms)):
                 dm = np.linalg.norm(model.marker(ms[a]).offset - model.marker(ms[b]).offset)
@@ -522,10 +507,10 @@ class _Problem:
             E = self.E_const[None]
             W = self.MEkT[None] @ st.omega[:, None]
             V = self.MEkT[None] @ st.v0[:, None]
-            Jm = _cross(W[:, self.slot], x[:, :, None, :]) + V[:, self.slot]            # (n,M,n_z,3)
+            Jm = cross(W[:, self.slot], x[:, :, None, :]) + V[:, self.slot]            # (n,M,n_z,3)
             Jm = np.swapaxes(Jm * w[:, :, None, None], 2, 3).reshape(n, 3 * M, -1)
         else:
-            cols = _cross(st.omega[:, None, :, :], x[:, :, None, :]) + st.v0[:, None, :, :]   # (n,M,K,3)
+            cols = cross(st.omega[:, None, :, :], x[:, :, None, :]) + st.v0[:, None, :, :]   # (n,M,K,3)
             cols *= (self.mask[None, :, :] * w[:, :, None])[..., None]
             E = cmap.jacobian(q)                                                           # (n,n_q,n_z)
             Ek = E[:, model.column_coordinate, :]                                          # (n,K,n_z)
@@ -706,7 +691,8 @@ def _solve_stream(problem: _Problem, z_start, Y, ok, tolerance, max_iterations, 
                 for f, zf, c in zip(win[leave], z[leave], small[leave]):
                     if c:
                         solved[int(f)] = zf
-                for f in [k for k in solved if k < nxt - 256]:
+                newest = max(solved)                 # never empty: the warm start needs a solved frame
+                for f in [k for k in solved if k < nxt - 256 and k != newest]:
                     del solved[f]
                 keep = ~leave
                 win, z, r, J = win[keep], z[keep], r[keep], J[keep]
@@ -731,17 +717,7 @@ def _solve_block(problem: _Problem, z0, y, ok, tolerance, max_iterations, lam0):
     cmap = problem.cmap
     A, bnd = cmap.ineq_matrix, cmap.ineq_rhs
     n = z0.shape[0]
-    z = z0.copy()
-    if A.shape[0]:
-        # Start feasible: clip along each violated row (coordinate limits are axis rows in practice).
-        for _ in range(3):
-            viol = z @ A.T - bnd
-            if not (viol > 0).any():
-                break
-            for k in range(A.shape[0]):
-                v = viol[:, k] > 0
-                if v.any():
-                    z[v] -= np.outer(viol[v, k], A[k]) / (A[k] @ A[k])
+    z = _feasible(z0, A, bnd) if A.shape[0] else z0.copy()      # start feasible (a copy either way)
     r, J, q, _ = problem.evaluate(z, y, ok)
     cost = np.einsum("ni,ni->n", r, r)
     lam = np.full(n, lam0)
@@ -789,7 +765,7 @@ def _rigid_start(model: Model, q_default: np.ndarray, names, y, ok, w) -> np.nda
     orthonormal axes and three identity translations (free / ground-pelvis
     joints); otherwise None.
     """
-    from .joints import CustomJoint, _is_unit
+    from .joints import CustomJoint, is_identity_function
 
     if not model.joints:
         return None
@@ -797,7 +773,7 @@ def _rigid_start(model: Model, q_default: np.ndarray, names, y, ok, w) -> np.nda
     if not isinstance(root, CustomJoint) or len(root.rotations) != 3 or len(root.translations) != 3:
         return None
     axes = root.rotations + root.translations
-    if not all(_is_unit(a.function) and len(a.coordinates) == 1 for a in axes):
+    if not all(is_identity_function(a.function) and len(a.coordinates) == 1 for a in axes):
         return None
     Ar = np.array([a.axis for a in root.rotations]).T
     Bt = np.array([a.axis for a in root.translations]).T

@@ -31,19 +31,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .functions import Constant, Function, Linear
+from .functions import Constant, Function, Linear, read_only
 
 __all__ = [
     "Transform", "TransformAxis", "Joint", "CustomJoint", "SwingJoint", "ExpMapSpherical",
     "weld", "revolute", "prismatic", "universal", "spherical", "free",
     "rotation_about", "euler_to_matrix", "matrix_to_euler_xyz", "skew", "exp_so3", "left_jacobian_so3",
+    "left_jacobian_inverse_so3", "is_identity_function",
 ]
-
-
-def _ro(a) -> np.ndarray:
-    a = np.array(a, dtype=float)
-    a.setflags(write=False)
-    return a
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -114,6 +109,20 @@ def left_jacobian_so3(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + B * K + C * (K @ K)
 
 
+def left_jacobian_inverse_so3(r: np.ndarray) -> np.ndarray:
+    """Inverse J(r)^-1 of the SO(3) left Jacobian (closed form), shape (N,3,3).
+
+    J^-1 = I - [r]x / 2 + (1/th^2 - (1 + cos th) / (2 th sin th)) [r]x^2, th = |r| (series 1/12 near 0).
+    """
+    r = np.asarray(r, dtype=float)
+    th = np.linalg.norm(r, axis=-1)[..., None, None]
+    K = skew(r)
+    small = th < 1e-6
+    ths = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0, 1.0 / ths**2 - (1.0 + np.cos(ths)) / (2.0 * ths * np.sin(ths)))
+    return np.eye(3) - 0.5 * K + c * (K @ K)
+
+
 @dataclass(frozen=True, eq=False)
 class Transform:
     """Rigid transform x_parent = rotation @ x_local + translation (metres)."""
@@ -129,8 +138,8 @@ class Transform:
             raise ValueError("Transform needs a 3x3 rotation and a 3-vector translation")
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-9) or np.linalg.det(R) < 0:
             raise ValueError("Transform rotation is not a proper rotation matrix")
-        object.__setattr__(self, "rotation", _ro(R))
-        object.__setattr__(self, "translation", _ro(p))
+        object.__setattr__(self, "rotation", read_only(R))
+        object.__setattr__(self, "translation", read_only(p))
         object.__setattr__(self, "_identity", bool(np.array_equal(R, np.eye(3)) and not p.any()))
 
     @classmethod
@@ -222,7 +231,7 @@ class TransformAxis:
         n = np.linalg.norm(a)
         if a.shape != (3,) or n == 0:
             raise ValueError("TransformAxis needs a non-zero 3-vector axis")
-        object.__setattr__(self, "axis", _ro(a / n))
+        object.__setattr__(self, "axis", read_only(a / n))
         object.__setattr__(self, "coordinates", tuple(self.coordinates))
         if self.function.n_inputs != len(self.coordinates):
             # Constant functions ignore their inputs (OpenSim lists coordinates anyway).
@@ -237,9 +246,12 @@ _I3 = np.eye(3)
 _I3.setflags(write=False)
 
 
-def _is_unit(f: Function) -> bool:
+def is_identity_function(f: Function) -> bool:
     """f(q) = q exactly (identity linear function)."""
     return type(f) is Linear and f.slope == 1.0 and f.intercept == 0.0
+
+
+_is_unit = is_identity_function        # former private name, kept for existing importers
 
 
 @dataclass(frozen=True, eq=False)
@@ -331,7 +343,7 @@ class CustomJoint(Joint):
                 R = Rc if R is None else R @ Rc
                 continue
             u = ax.axis if R is None else R @ ax.axis          # current axis expressed in F
-            if _is_unit(ax.function):                          # theta = q: the common case
+            if is_identity_function(ax.function):              # theta = q: the common case
                 val = qj[:, c[0]]
                 S[:, :3, c[0]] += u
             else:
@@ -350,7 +362,7 @@ class CustomJoint(Joint):
             if pc is not None:
                 p += pc
                 continue
-            if _is_unit(ax.function):
+            if is_identity_function(ax.function):
                 p += qj[:, c[0], None] * ax.axis
                 S[:, 3:, c[0]] += ax.axis
                 continue
@@ -442,7 +454,7 @@ class SwingJoint(Joint):
         E = np.asarray(self.axes, dtype=float)
         if E.shape != (2, 3) or not np.allclose(E @ E.T, np.eye(2), atol=1e-9):
             raise ValueError("SwingJoint needs two orthonormal axes")
-        object.__setattr__(self, "axes", _ro(E))
+        object.__setattr__(self, "axes", read_only(E))
         if len(self.coordinates) != 2:
             raise ValueError("SwingJoint reads exactly 2 coordinates")
 

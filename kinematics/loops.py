@@ -30,7 +30,7 @@ import numpy as np
 
 from .chords import Chord
 from .errors import FitError, InputError
-from .fk import _as_q, _points_jacobian, forward_kinematics, point_positions
+from .fk import as_q, forward_kinematics, point_positions, points_jacobian
 from .model import Model
 from .transmission import TransmissionChain
 
@@ -101,7 +101,7 @@ class CoincidentPoints:
 
 def loop_residuals(model: Model, q, constraints: Sequence) -> tuple[np.ndarray, np.ndarray]:
     """Stacked measurements g (N, m) and their Jacobian dg/dq (N, m, n_q) (or unbatched for q (n_q,))."""
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     st = forward_kinematics(model, q2, jacobian=True)
     try:
         bodies = np.array([[model.body_index(c.body_a), model.body_index(c.body_b)] for c in constraints], int)
@@ -109,7 +109,7 @@ def loop_residuals(model: Model, q, constraints: Sequence) -> tuple[np.ndarray, 
         raise InputError(model.name, f"loop constraint: {exc.args[0]}") from None
     pts = np.array([[c.point_a, c.point_b] for c in constraints], float).reshape(-1, 3)
     x = point_positions(model, st, bodies.ravel(), pts)
-    J = _points_jacobian(model, st, bodies.ravel(), x)
+    J = points_jacobian(model, st, bodies.ravel(), x)
     gs, Js = [], []
     for k, c in enumerate(constraints):
         g, Jg = c.evaluate(x[:, 2 * k], x[:, 2 * k + 1], J[:, 2 * k], J[:, 2 * k + 1])
@@ -186,7 +186,7 @@ def close_loop(model: Model, q, constraints: Sequence, free_coordinates: Sequenc
     InputError  unknown coordinate/body names, or no free coordinates
     FitError    some pose did not close (loop cannot be assembled from these values)
     """
-    q2, single = _as_q(model, q)
+    q2, single = as_q(model, q)
     q2 = q2.copy()
     if not free_coordinates or not constraints:
         raise InputError(model.name, "loop closure needs at least one constraint and one free coordinate")

@@ -34,6 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from .correlative import CorrelativeLaw, fit_law
 from .errors import FitError, InputError
+from .functional import relative_pose
 
 __all__ = [
     "body_poses",
@@ -103,11 +104,8 @@ def body_poses(markers, reference: int | np.ndarray = 0, name: str = "body"):
 
 
 def relative_poses(parent_R, parent_t, child_R, child_t):
-    """Child poses expressed in the parent's reference frame: ``P^-1 C``."""
-    Rp = np.asarray(parent_R)
-    Rr = np.einsum("fji,fjk->fik", Rp, child_R)
-    tr = np.einsum("fji,fj->fi", Rp, np.asarray(child_t) - np.asarray(parent_t))
-    return Rr, tr
+    """Child poses expressed in the parent's reference frame: ``P^-1 C`` (`kinematics.functional.relative_pose`)."""
+    return relative_pose(parent_R, parent_t, child_R, child_t)
 
 
 @dataclass(frozen=True)

@@ -18,17 +18,12 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from .coupling import CoordinateCoupler, LinearCoupling, LinearInequalities
+from .functions import read_only
 from .joints import Joint, Transform
 
 __all__ = ["Body", "Coordinate", "Marker", "Frame", "Model", "GROUND", "build_model"]
 
 GROUND = "ground"
-
-
-def _ro(a) -> np.ndarray:
-    a = np.array(a, dtype=float)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,7 +36,7 @@ class Body:
     inertia: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
     def __post_init__(self):
-        com = _ro(self.com)
+        com = read_only(self.com)
         I = np.asarray(self.inertia, dtype=float)
         if I.shape == (6,):  # OpenSim [Ixx Iyy Izz Ixy Ixz Iyz]
             xx, yy, zz, xy, xz, yz = I
@@ -51,7 +46,7 @@ class Body:
         if self.mass < 0:
             raise ValueError(f"body {self.name!r}: negative mass")
         object.__setattr__(self, "com", com)
-        object.__setattr__(self, "inertia", _ro(I))
+        object.__setattr__(self, "inertia", read_only(I))
 
 
 @dataclass(frozen=True)
@@ -84,7 +79,7 @@ class Marker:
     offset: np.ndarray
 
     def __post_init__(self):
-        off = _ro(self.offset)
+        off = read_only(self.offset)
         if off.shape != (3,):
             raise ValueError(f"marker {self.name!r}: offset must be a 3-vector")
         object.__setattr__(self, "offset", off)
@@ -186,7 +181,7 @@ class Model:
         object.__setattr__(self, "markers", tuple(self.markers))
         object.__setattr__(self, "frames", tuple(self.frames))
         object.__setattr__(self, "couplers", tuple(self.couplers))
-        object.__setattr__(self, "gravity", _ro(self.gravity))
+        object.__setattr__(self, "gravity", read_only(self.gravity))
         cnames = [c.name for c in self.coordinates]
         if len(set(cnames)) != len(cnames):
             raise ValueError("duplicate coordinate names")
@@ -263,23 +258,20 @@ class Model:
     def body_names(self) -> tuple[str, ...]:
         return tuple(b.name for b in self.bodies)
 
-    def body_index(self, name: str) -> int:
+    def _lookup(self, kind: str, name: str) -> int:
         try:
-            return self._index["body"][name]
+            return self._index[kind][name]
         except KeyError:
-            raise KeyError(f"model {self.name!r} has no body {name!r}") from None
+            raise KeyError(f"model {self.name!r} has no {kind} {name!r}") from None
+
+    def body_index(self, name: str) -> int:
+        return self._lookup("body", name)
 
     def coordinate_index(self, name: str) -> int:
-        try:
-            return self._index["coordinate"][name]
-        except KeyError:
-            raise KeyError(f"model {self.name!r} has no coordinate {name!r}") from None
+        return self._lookup("coordinate", name)
 
     def marker_index(self, name: str) -> int:
-        try:
-            return self._index["marker"][name]
-        except KeyError:
-            raise KeyError(f"model {self.name!r} has no marker {name!r}") from None
+        return self._lookup("marker", name)
 
     def joint(self, name: str) -> Joint:
         return self.joints[self._index["joint"][name]]

@@ -29,12 +29,15 @@ from .functions import Constant, Function, Linear, Multiplier, MultivariateLinea
 from .joints import CustomJoint, Transform, TransformAxis, matrix_to_euler_xyz
 from .model import GROUND, Body, Coordinate, Marker, Model
 
-__all__ = ["load_osim", "save_osim", "to_opensim", "check_osim_file"]
+__all__ = ["load_osim", "save_osim", "to_opensim", "check_osim_file", "read_xml", "import_opensim", "open_osim_model",
+           "write_osim", "vec_from_opensim", "transform_from_opensim", "function_from_opensim", "function_to_opensim",
+           "add_coupler_constraint"]
 
 _E = np.eye(3)
 
 
-def _opensim():
+def import_opensim():
+    """The ``opensim`` module with its logger quietened to errors (`InputError` when it is not installed)."""
     try:
         import opensim
     except ImportError as exc:  # pragma: no cover - opensim is a dependency
@@ -46,6 +49,9 @@ def _opensim():
     return opensim
 
 
+_opensim = import_opensim        # former private name, kept for existing importers
+
+
 @lru_cache(maxsize=None)
 def polynomial_layout(k: int) -> tuple[int, ...]:
     """Input multiplied by each order-1 coefficient of OpenSim's MultivariatePolynomialFunction.
@@ -55,7 +61,7 @@ def polynomial_layout(k: int) -> tuple[int, ...]:
     order-1 terms with the inputs reversed; rather than assume it, the layout
     is probed by evaluating unit coefficient vectors at unit inputs.
     """
-    osim = _opensim()
+    osim = import_opensim()
     layout = []
     for j in range(k):
         f = osim.MultivariatePolynomialFunction()
@@ -78,38 +84,79 @@ def polynomial_layout(k: int) -> tuple[int, ...]:
     return tuple(layout)
 
 
-def check_osim_file(path: str | os.PathLike) -> None:
-    """Raise `InputError` unless `path` is a readable OpenSim XML document with a Model."""
+def read_xml(path: str | os.PathLike, missing: str, not_xml: str):
+    """Root element of the XML file `path`, parsed with ``defusedxml``.
+
+    Raises `InputError` naming `path`: `missing` when it is not a file,
+    "refusing unsafe XML" for entity/DTD attacks, and ``f"{not_xml} ({exc})"``
+    when it is not well-formed XML.
+    """
     from defusedxml import ElementTree as ET
     from defusedxml.common import DefusedXmlException
 
     path = Path(path)
     if not path.is_file():
-        raise InputError(path, "model file not found")
+        raise InputError(path, missing)
     try:
-        root = ET.parse(path).getroot()
+        return ET.parse(path).getroot()
     except DefusedXmlException as exc:
         raise InputError(path, f"refusing unsafe XML ({type(exc).__name__})") from None
     except Exception as exc:
-        raise InputError(path, f"not an OpenSim model: the file is not XML ({exc})") from None
+        raise InputError(path, f"{not_xml} ({exc})") from None
+
+
+def check_osim_file(path: str | os.PathLike) -> None:
+    """Raise `InputError` unless `path` is a readable OpenSim XML document with a Model."""
+    path = Path(path)
+    root = read_xml(path, "model file not found", "not an OpenSim model: the file is not XML")
     if root.tag != "OpenSimDocument" or root.find("Model") is None:
         raise InputError(path, f"not an OpenSim model: XML root is <{root.tag}>, expected <OpenSimDocument> with a <Model>")
 
 
-def _vec(v) -> np.ndarray:
+def open_osim_model(path: str | os.PathLike):
+    """Check `path` (`check_osim_file`) and load it as an initialised ``opensim.Model``.
+
+    Raises `InputError` with OpenSim's first message line when OpenSim cannot load it.
+    """
+    check_osim_file(path)
+    osim = import_opensim()
+    try:
+        om = osim.Model(os.fspath(path))
+        om.finalizeFromProperties()
+        om.initSystem()
+    except Exception as exc:
+        msg = str(exc).strip().splitlines()
+        raise InputError(path, f"OpenSim cannot load the model: {msg[0] if msg else type(exc).__name__}") from None
+    return om
+
+
+def write_osim(om, path: str | os.PathLike) -> Path:
+    """Print the ``opensim.Model`` `om` to `path` atomically (`InputError` when OpenSim refuses)."""
+    from .atomic import atomic_path
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if not om.printToXML(os.fspath(tmp)):
+            raise InputError(path, "OpenSim could not write the model")
+    return path
+
+
+def vec_from_opensim(v) -> np.ndarray:
+    """SimTK Vec3 -> (3,) float array."""
     return np.array([v.get(0), v.get(1), v.get(2)], dtype=float)
 
 
-def _transform(X) -> Transform:
+def transform_from_opensim(X) -> Transform:
+    """SimTK Transform -> `Transform` (rotation re-orthonormalised)."""
     R = X.R()
     M = np.array([[R.get(i, j) for j in range(3)] for i in range(3)])
     # Re-orthonormalise (SimTK stores the rotation in double precision already; this only removes round-off).
     u, _, vt = np.linalg.svd(M)
-    return Transform(u @ vt, _vec(X.p()))
+    return Transform(u @ vt, vec_from_opensim(X.p()))
 
 
-def _function(osim, f, where: str, source) -> Function:
-    """Convert an OpenSim Function to ours."""
+def function_from_opensim(osim, f, where: str, source) -> Function:
+    """Convert an OpenSim Function to ours (`InputError` naming `source` and `where` for unsupported types)."""
     name = f.getConcreteClassName()
     if name == "Constant":
         return Constant(osim.Constant.safeDownCast(f).getValue())
@@ -126,7 +173,7 @@ def _function(osim, f, where: str, source) -> Function:
         return NaturalCubicSpline([s.getX(i) for i in range(n)], [s.getY(i) for i in range(n)])
     if name == "MultiplierFunction":
         mf = osim.MultiplierFunction.safeDownCast(f)
-        return Multiplier(_function(osim, mf.getFunction(), where, source), mf.getScale())
+        return Multiplier(function_from_opensim(osim, mf.getFunction(), where, source), mf.getScale())
     if name == "MultivariatePolynomialFunction":
         mp = osim.MultivariatePolynomialFunction.safeDownCast(f)
         if mp.getOrder() == 1:
@@ -136,6 +183,10 @@ def _function(osim, f, where: str, source) -> Function:
                 slopes[i] = c[j + 1]
             return MultivariateLinear(slopes, c[0])
     raise InputError(source, f"{where}: unsupported OpenSim function type {name}")
+
+
+# Former private names, kept for existing importers.
+_vec, _transform, _function = vec_from_opensim, transform_from_opensim, function_from_opensim
 
 
 def _coordinate(c) -> Coordinate:
@@ -170,21 +221,13 @@ def load_osim(path: str | os.PathLike) -> Model:
         Not OpenSim XML, unreadable by OpenSim, or using an unsupported joint,
         function or constraint type.
     """
-    check_osim_file(path)
-    osim = _opensim()
-    try:
-        om = osim.Model(os.fspath(path))
-        om.finalizeFromProperties()
-        om.initSystem()
-    except Exception as exc:
-        msg = str(exc).strip().splitlines()
-        raise InputError(path, f"OpenSim cannot load the model: {msg[0] if msg else type(exc).__name__}") from None
+    om = open_osim_model(path)
     return from_opensim(om, source=os.fspath(path))
 
 
 def from_opensim(om, source=None) -> Model:
     """Convert an initialised ``opensim.Model`` to a `Model`."""
-    osim = _opensim()
+    osim = import_opensim()
     ground = om.getGround().getName()
 
     def base_name(frame) -> str:
@@ -196,9 +239,9 @@ def from_opensim(om, source=None) -> Model:
     for i in range(bs.getSize()):
         b = bs.get(i)
         I = b.getInertia()
-        mo, pr = _vec(I.getMoments()), _vec(I.getProducts())
+        mo, pr = vec_from_opensim(I.getMoments()), vec_from_opensim(I.getProducts())
         inertia = np.array([[mo[0], pr[0], pr[1]], [pr[0], mo[1], pr[2]], [pr[1], pr[2], mo[2]]])
-        bodies.append(Body(b.getName(), b.getMass(), _vec(b.getMassCenter()), inertia))
+        bodies.append(Body(b.getName(), b.getMass(), vec_from_opensim(b.getMassCenter()), inertia))
     joints, coords = [], []
     js = om.getJointSet()
     for i in range(js.getSize()):
@@ -206,7 +249,8 @@ def from_opensim(om, source=None) -> Model:
         cls = j.getConcreteClassName()
         where = f"joint {j.getName()!r}"
         pf, cf = j.getParentFrame(), j.getChildFrame()
-        po, co = _transform(pf.findTransformInBaseFrame()), _transform(cf.findTransformInBaseFrame())
+        po = transform_from_opensim(pf.findTransformInBaseFrame())
+        co = transform_from_opensim(cf.findTransformInBaseFrame())
         jc = [j.get_coordinates(k) for k in range(j.numCoordinates())]
         cnames = tuple(c.getName() for c in jc)
         coords.extend(_coordinate(c) for c in jc)
@@ -217,13 +261,13 @@ def from_opensim(om, source=None) -> Model:
                 ta = st.getTransformAxis(k)
                 names = ta.getCoordinateNamesInArray()
                 names = tuple(names.get(n) for n in range(names.getSize()))
-                fn = _function(osim, ta.getFunction(), f"{where} {ta.getName()}", source)
+                fn = function_from_opensim(osim, ta.getFunction(), f"{where} {ta.getName()}", source)
                 if isinstance(fn, Constant) or (isinstance(fn, Multiplier) and isinstance(fn.function, Constant)):
                     names = ()
                     fn = Constant(fn(np.zeros((1, 0)))[0]) if isinstance(fn, Multiplier) else fn
                 elif fn.n_inputs != len(names):
                     raise InputError(source, f"{where} {ta.getName()}: function of {fn.n_inputs} inputs on {len(names)} coordinates")
-                axes.append(TransformAxis(_vec(ta.getAxis()), fn, names))
+                axes.append(TransformAxis(vec_from_opensim(ta.getAxis()), fn, names))
             joints.append(CustomJoint(j.getName(), base_name(pf), base_name(cf), cnames, po, co,
                                       rotations=tuple(axes[:3]), translations=tuple(axes[3:]), kind_name="custom"))
         elif cls in _STANDARD:
@@ -248,7 +292,7 @@ def from_opensim(om, source=None) -> Model:
         ind = cc.getIndependentCoordinateNames()
         ind = tuple(ind.get(k) for k in range(ind.getSize()))
         dep = cc.getDependentCoordinateName()
-        fn = _function(osim, cc.getFunction(), f"constraint {c.getName()!r}", source)
+        fn = function_from_opensim(osim, cc.getFunction(), f"constraint {c.getName()!r}", source)
         try:
             sf = float(cc.getPropertyByName("scale_factor").toString())
         except Exception:  # pragma: no cover - property absent in old bindings
@@ -273,9 +317,9 @@ def from_opensim(om, source=None) -> Model:
     for i in range(ms.getSize()):
         m = ms.get(i)
         pf = m.getParentFrame()
-        X = _transform(pf.findTransformInBaseFrame())
-        markers.append(Marker(m.getName(), base_name(pf), X.apply(_vec(m.get_location()))))
-    g = _vec(om.getGravity())
+        X = transform_from_opensim(pf.findTransformInBaseFrame())
+        markers.append(Marker(m.getName(), base_name(pf), X.apply(vec_from_opensim(m.get_location()))))
+    g = vec_from_opensim(om.getGravity())
     try:
         return Model(tuple(bodies), tuple(joints), tuple(coords), tuple(markers), couplings=couplings,
                      couplers=tuple(couplers), gravity=g, name=om.getName())
@@ -284,7 +328,8 @@ def from_opensim(om, source=None) -> Model:
 
 
 # ---------------------------------------------------------------------------------------- export
-def _to_osim_function(osim, f: Function):
+def function_to_opensim(osim, f: Function):
+    """Build the OpenSim Function equal to `f` (Constant, Linear, SimmSpline, Multiplier, MultivariateLinear)."""
     if isinstance(f, Constant):
         return osim.Constant(float(f.value))
     if isinstance(f, Linear):
@@ -295,7 +340,7 @@ def _to_osim_function(osim, f: Function):
             s.addPoint(float(x), float(y))
         return s
     if isinstance(f, Multiplier):
-        inner = _to_osim_function(osim, f.function)
+        inner = function_to_opensim(osim, f.function)
         # MultiplierFunction keeps the pointer: hand ownership to C++ so Python never frees it.
         inner.thisown = False
         return osim.MultiplierFunction(inner, float(f.scale))
@@ -312,6 +357,26 @@ def _to_osim_function(osim, f: Function):
     raise InputError(None, f"cannot export function {type(f).__name__} to OpenSim")
 
 
+_to_osim_function = function_to_opensim
+
+
+def add_coupler_constraint(osim, om, name: str, dependent: str, independent, function) -> None:
+    """Add a CoordinateCouplerConstraint ``dependent = function(independent...)`` to the ``opensim.Model`` `om`.
+
+    `function` is an OpenSim Function; the constraint takes ownership of it.
+    """
+    cc = osim.CoordinateCouplerConstraint()
+    cc.setName(name)
+    cc.setDependentCoordinateName(dependent)
+    arr = osim.ArrayStr()
+    for n in independent:
+        arr.append(n)
+    cc.setIndependentCoordinateNames(arr)
+    cc.setFunction(function)
+    function.thisown = False           # the constraint keeps the pointer: keep Python from freeing it
+    om.addConstraint(cc)
+
+
 def _vec3(osim, v):
     v = np.asarray(v, float)
     return osim.Vec3(float(v[0]), float(v[1]), float(v[2]))
@@ -319,7 +384,7 @@ def _vec3(osim, v):
 
 def to_opensim(model: Model):
     """Build an ``opensim.Model`` equivalent to `model` (not yet initialised)."""
-    osim = _opensim()
+    osim = import_opensim()
     om = osim.Model()
     om.setName(model.name)
     om.setGravity(_vec3(osim, model.gravity))
@@ -352,7 +417,7 @@ def to_opensim(model: Model):
                         names.append(n)
                     ta.setCoordinateNames(names)
                     ta.setAxis(_vec3(osim, ax.axis))
-                    ta.set_function(_to_osim_function(osim, ax.function))
+                    ta.set_function(function_to_opensim(osim, ax.function))
                 else:
                     # Unused axes: zero functions about axes completing an independent triad.
                     fill = _complete_axes([a.axis for a in axes])
@@ -372,36 +437,17 @@ def to_opensim(model: Model):
             oc.setDefaultClamped(bool(c.clamped))
     if model.couplings is not None:
         names = model.couplings.coordinates
-        for r, (row, rhs, label) in enumerate(zip(model.couplings.matrix, model.couplings.rhs, model.couplings.labels)):
+        for row, rhs, label in zip(model.couplings.matrix, model.couplings.rhs, model.couplings.labels):
             nz = np.flatnonzero(row)
             dep = label if label in names and row[names.index(label)] != 0 else names[nz[0]]
             a = row[names.index(dep)]
             ind = [names[i] for i in nz if names[i] != dep]
             coef = [-row[names.index(n)] / a for n in ind]
-            cc = osim.CoordinateCouplerConstraint()
-            cc.setName(f"coupling_{dep}")
-            cc.setDependentCoordinateName(dep)
-            arr = osim.ArrayStr()
-            for n in ind:
-                arr.append(n)
-            cc.setIndependentCoordinateNames(arr)
             f = Linear(coef[0], rhs / a) if len(ind) == 1 else MultivariateLinear(coef, rhs / a)
-            of = _to_osim_function(osim, f)
-            cc.setFunction(of)
-            of.thisown = False
-            om.addConstraint(cc)
+            add_coupler_constraint(osim, om, f"coupling_{dep}", dep, ind, function_to_opensim(osim, f))
     for cp in model.couplers:
-        cc = osim.CoordinateCouplerConstraint()
-        cc.setName(cp.name or f"coupler_{cp.dependent}")
-        cc.setDependentCoordinateName(cp.dependent)
-        arr = osim.ArrayStr()
-        for n in cp.independent:
-            arr.append(n)
-        cc.setIndependentCoordinateNames(arr)
-        of = _to_osim_function(osim, cp.function)
-        cc.setFunction(of)
-        of.thisown = False
-        om.addConstraint(cc)
+        add_coupler_constraint(osim, om, cp.name or f"coupler_{cp.dependent}", cp.dependent, cp.independent,
+                               function_to_opensim(osim, cp.function))
     for m in model.markers:
         om.addMarker(osim.Marker(m.name, obodies[m.body], _vec3(osim, m.offset)))
     om.finalizeConnections()
@@ -424,14 +470,7 @@ def _complete_axes(used):
 
 def save_osim(model: Model, path: str | os.PathLike) -> Path:
     """Export `model` to an OpenSim .osim file (written atomically)."""
-    from .atomic import atomic_path
-
-    om = to_opensim(model)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        if not om.printToXML(os.fspath(tmp)):
-            raise InputError(path, "OpenSim could not write the model")
-    return path
+    return write_osim(to_opensim(model), path)
 
 
 def opensim_inverse_kinematics(model_path: str | os.PathLike, trc_path: str | os.PathLike,
@@ -447,7 +486,7 @@ def opensim_inverse_kinematics(model_path: str | os.PathLike, trc_path: str | os
     """
     import time as _t
 
-    osim = _opensim()
+    osim = import_opensim()
     om = osim.Model(os.fspath(model_path))
     s = om.initSystem()
     ws = osim.SetMarkerWeights()

@@ -35,7 +35,8 @@ __all__ = [
     "SegmentPose", "PiGResult", "LOWER_BODY_MARKERS",
     "pelvis_frame", "davis_hip_offset", "hip_joint_centres", "chord_joint_centre",
     "femur_frame", "tibia_frame", "foot_frame", "cardan_yxz", "joint_angles",
-    "static_foot_offsets", "plug_in_gait",
+    "static_foot_offsets", "plug_in_gait", "unit_vectors", "sacrum_marker", "leg_chain", "chord_centre_jacobians",
+    "median_covariance",
 ]
 
 # Davis et al. (1991) regression constants, exactly as in Plug-in-Gait.
@@ -95,7 +96,8 @@ class PiGResult:
     notes: tuple = field(default_factory=tuple)
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
+def unit_vectors(v: np.ndarray) -> np.ndarray:
+    """Vectors v (..., 3) scaled to unit length; NaN (without a warning) where v is zero or NaN."""
     with np.errstate(invalid="ignore", divide="ignore"):
         return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
@@ -114,9 +116,9 @@ def pelvis_frame(rasi, lasi, sacrum) -> SegmentPose:
     `sacrum` is the SACR marker or the RPSI/LPSI mid-point, (F, 3) m.
     """
     origin = 0.5 * (rasi + lasi)
-    y = _unit(lasi - rasi)
+    y = unit_vectors(lasi - rasi)
     b = origin - sacrum
-    x = _unit(b - np.sum(b * y, axis=-1, keepdims=True) * y)
+    x = unit_vectors(b - np.sum(b * y, axis=-1, keepdims=True) * y)
     z = np.cross(x, y)
     return SegmentPose(origin, _frame(x, y, z))
 
@@ -178,8 +180,8 @@ def chord_joint_centre(wand, proximal_centre, marker, delta) -> np.ndarray:
     a, b, c = (np.asarray(v, float) for v in (wand, proximal_centre, marker))
     bc = b - c
     d = np.linalg.norm(bc, axis=-1, keepdims=True)
-    u = _unit(bc)
-    n = _unit(np.cross(a - c, bc))
+    u = unit_vectors(bc)
+    n = unit_vectors(np.cross(a - c, bc))
     with np.errstate(invalid="ignore"):
         cphi = np.where(d >= delta, delta / d, np.nan)
     sphi = np.sqrt(1.0 - cphi**2)
@@ -191,18 +193,18 @@ def chord_joint_centre(wand, proximal_centre, marker, delta) -> np.ndarray:
 
 def femur_frame(hip, knee, knee_marker, side: str) -> SegmentPose:
     """Femur: origin knee centre, z = unit(hip - knee), x ⟂ plane(hip, knee, KNE) pointing anterior."""
-    z = _unit(hip - knee)
+    z = unit_vectors(hip - knee)
     lateral = knee_marker - hip
-    x = _unit(np.cross(z, lateral) if side.upper()[0] == "R" else np.cross(lateral, z))
+    x = unit_vectors(np.cross(z, lateral) if side.upper()[0] == "R" else np.cross(lateral, z))
     return SegmentPose(knee, _frame(x, np.cross(z, x), z))
 
 
 def tibia_frame(knee, ankle, tibia_marker, ankle_marker, side: str, torsion: float = 0.0) -> SegmentPose:
     """Tibia: origin ankle centre, z = unit(knee - ankle), x ⟂ plane(TIB, ANK, z) pointing anterior,
     then rotated by the tibial torsion τ about z (x' = cos τ x - sin τ y)."""
-    z = _unit(knee - ankle)
+    z = unit_vectors(knee - ankle)
     lateral = tibia_marker - ankle_marker
-    x = _unit(np.cross(z, lateral) if side.upper()[0] == "R" else np.cross(lateral, z))
+    x = unit_vectors(np.cross(z, lateral) if side.upper()[0] == "R" else np.cross(lateral, z))
     y = np.cross(z, x)
     if torsion:
         x, y = np.cos(torsion) * x - np.sin(torsion) * y, np.sin(torsion) * x + np.cos(torsion) * y
@@ -210,8 +212,8 @@ def tibia_frame(knee, ankle, tibia_marker, ankle_marker, side: str, torsion: flo
 
 
 def _uncorrected_foot(ankle, toe, tibia: SegmentPose) -> np.ndarray:
-    z = _unit(ankle - toe)
-    x = _unit(np.cross(tibia.axes[..., 1], z))
+    z = unit_vectors(ankle - toe)
+    x = unit_vectors(np.cross(tibia.axes[..., 1], z))
     return _frame(x, np.cross(z, x), z)
 
 
@@ -284,7 +286,8 @@ def joint_angles(proximal: SegmentPose, distal: SegmentPose, joint: str, side: s
 # --------------------------------------------------------------------------- model
 
 
-def _sacrum(trial: MarkerTrial) -> np.ndarray:
+def sacrum_marker(trial: MarkerTrial) -> np.ndarray:
+    """SACR trajectory (F, 3) m, or the mid-point of RPSI and LPSI when the trial has no SACR."""
     if "SACR" in trial.names:
         return trial.marker("SACR")
     trial.require(["RPSI", "LPSI"])
@@ -313,13 +316,31 @@ def _chain(trial: MarkerTrial, subject: SubjectMeasurements):
     if rot:
         # Refuse rather than silently ignore: these offsets change the knee/ankle planes.
         raise InputError(subject.source, f"non-zero {', '.join(rot)} (wand-marker rotation offsets) are not supported")
-    M = trial.marker
-    pelvis = pelvis_frame(M("RASI"), M("LASI"), _sacrum(trial))
+    pelvis = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), sacrum_marker(trial))
     iad = _inter_asis(subject, trial)
+    legs, centres = leg_chain(trial, subject, {s: pelvis.to_lab(davis_hip_offset(subject, s, iad)) for s in "RL"})
+    return {"pelvis": pelvis, **legs}, centres
+
+
+def leg_chain(trial: MarkerTrial, subject: SubjectMeasurements, hips: dict) -> tuple[dict, dict]:
+    """Knee and ankle centres and femur/tibia frames of both legs from given hip centres.
+
+    Parameters
+    ----------
+    hips : dict ``'R'``/``'L'`` -> (F, 3) m, hip centres in the lab
+
+    Returns
+    -------
+    segments : dict ``femur_r, tibia_untorsioned_r, tibia_r, ..._l`` -> SegmentPose
+        (``tibia`` includes the tibial torsion)
+    centres : dict ``hip_r, knee_r, ankle_r, ..._l`` -> (F, 3) m, knee and ankle
+        from `chord_joint_centre` (half the joint width plus the marker radius)
+    """
+    M = trial.marker
     r = 0.5 * subject.marker_diameter
-    segs, centres = {"pelvis": pelvis}, {}
+    segs, centres = {}, {}
     for s, sfx in (("R", "_r"), ("L", "_l")):
-        hip = pelvis.to_lab(davis_hip_offset(subject, s, iad))
+        hip = hips[s]
         m = subject.side(s)
         knee = chord_joint_centre(M(f"{s}THI"), hip, M(f"{s}KNE"), 0.5 * m["knee_width"] + r)
         ankle = chord_joint_centre(M(f"{s}TIB"), knee, M(f"{s}ANK"), 0.5 * m["ankle_width"] + r)
@@ -328,6 +349,24 @@ def _chain(trial: MarkerTrial, subject: SubjectMeasurements):
         segs[f"tibia_untorsioned{sfx}"] = tibia_frame(knee, ankle, M(f"{s}TIB"), M(f"{s}ANK"), s)
         segs[f"tibia{sfx}"] = tibia_frame(knee, ankle, M(f"{s}TIB"), M(f"{s}ANK"), s, m["tibial_torsion"])
     return segs, centres
+
+
+def chord_centre_jacobians(trial: MarkerTrial, subject: SubjectMeasurements, side: str, hip: np.ndarray,
+                           knee: np.ndarray, h: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    """J_k = ∂knee/∂hip and J_a = ∂ankle/∂knee (F, 3, 3) of the chord functions (central differences, step `h` m)."""
+    m = subject.side(side)
+    r = 0.5 * subject.marker_diameter
+    dk = 0.5 * m["knee_width"] + r
+    da = 0.5 * m["ankle_width"] + r
+    thi, kne, tib, ank = (trial.marker(f"{side}{n}") for n in ("THI", "KNE", "TIB", "ANK"))
+    Jk = np.empty(hip.shape + (3,))
+    Ja = np.empty(hip.shape + (3,))
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = h
+        Jk[..., i] = (chord_joint_centre(thi, hip + e, kne, dk) - chord_joint_centre(thi, hip - e, kne, dk)) / (2 * h)
+        Ja[..., i] = (chord_joint_centre(tib, knee + e, ank, da) - chord_joint_centre(tib, knee - e, ank, da)) / (2 * h)
+    return Jk, Ja
 
 
 def static_foot_offsets(static: MarkerTrial, subject: SubjectMeasurements, *, flat_foot: bool = False) -> SubjectMeasurements:
@@ -351,8 +390,8 @@ def static_foot_offsets(static: MarkerTrial, subject: SubjectMeasurements, *, fl
         if flat_foot:
             hee[:, 2] = toe[:, 2]
         unc = _uncorrected_foot(ankle, toe, segs[f"tibia{sfx}"])
-        z = _unit(hee - toe)
-        x = _unit(np.cross(unc[..., 1], z))
+        z = unit_vectors(hee - toe)
+        x = unit_vectors(np.cross(unc[..., 1], z))
         cor = _frame(x, np.cross(z, x), z)
         R = np.einsum("fji,fjk->fik", unc, cor)
         b, a, _ = np.moveaxis(cardan_yxz(R), -1, 0)
@@ -403,26 +442,19 @@ def _centre_covariance(trial: MarkerTrial, subject: SubjectMeasurements, centres
     chord function (central differences, step `h` m); Cov(ankle) likewise
     through ∂ankle/∂knee.  Median over frames of the per-frame matrices.
     """
-    r = 0.5 * subject.marker_diameter
     out = {}
     for s, sfx in (("R", "_r"), ("L", "_l")):
-        m = subject.side(s)
-        hip, knee = centres[f"hip{sfx}"], centres[f"knee{sfx}"]
-        dk = 0.5 * m["knee_width"] + r
-        da = 0.5 * m["ankle_width"] + r
-        thi, kne, tib, ank = (trial.marker(f"{s}{n}") for n in ("THI", "KNE", "TIB", "ANK"))
-        Jk = np.empty(hip.shape + (3,))
-        Ja = np.empty(hip.shape + (3,))
-        for i in range(3):
-            e = np.zeros(3)
-            e[i] = h
-            Jk[..., i] = (chord_joint_centre(thi, hip + e, kne, dk) - chord_joint_centre(thi, hip - e, kne, dk)) / (2 * h)
-            Ja[..., i] = (chord_joint_centre(tib, knee + e, ank, da) - chord_joint_centre(tib, knee - e, ank, da)) / (2 * h)
+        Jk, Ja = chord_centre_jacobians(trial, subject, s, centres[f"hip{sfx}"], centres[f"knee{sfx}"], h)
         c_hip = DAVIS_HIP_SD**2 * np.eye(3)
         c_knee = np.einsum("fij,jk,flk->fil", Jk, c_hip, Jk)
         c_ankle = np.einsum("fij,fjk,flk->fil", Ja, c_knee, Ja)
         out[f"hip{sfx}"] = c_hip
-        for name, c in ((f"knee{sfx}", c_knee), (f"ankle{sfx}", c_ankle)):
-            ok = np.all(np.isfinite(c), axis=(1, 2))
-            out[name] = np.median(c[ok], axis=0) if ok.any() else np.full((3, 3), np.nan)
+        out[f"knee{sfx}"] = median_covariance(c_knee)
+        out[f"ankle{sfx}"] = median_covariance(c_ankle)
     return out
+
+
+def median_covariance(c: np.ndarray) -> np.ndarray:
+    """Element-wise median (3, 3) of per-frame covariances c (F, 3, 3) over the finite frames (NaN if none)."""
+    ok = np.all(np.isfinite(c), axis=(1, 2))
+    return np.median(c[ok], axis=0) if ok.any() else np.full((3, 3), np.nan)

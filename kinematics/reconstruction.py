@@ -29,8 +29,8 @@ from .foot_to_hip import (REQUIRED_MARKERS, FootToHipCalibration, calibrate, hip
                           knee_ankle_axes, seed_femur_frame)
 from .functional import score
 from .markers import MarkerTrial
-from .pig import (LOWER_BODY_MARKERS, SegmentPose, chord_joint_centre, femur_frame, foot_frame,
-                  joint_angles, pelvis_frame, plug_in_gait, static_foot_offsets, tibia_frame)
+from .pig import (LOWER_BODY_MARKERS, SegmentPose, chord_centre_jacobians, foot_frame, joint_angles, leg_chain,
+                  median_covariance, pelvis_frame, plug_in_gait, sacrum_marker, static_foot_offsets, unit_vectors)
 from .subject import SubjectMeasurements, validate_static
 
 __all__ = ["Reconstruction", "reconstruct", "METHODS", "ANGLE_COLUMNS", "CENTRE_MARKERS", "tibia_fluctuation"]
@@ -77,12 +77,6 @@ class Reconstruction:
         return np.concatenate(cols, axis=1)
 
 
-def _sacrum(trial: MarkerTrial) -> np.ndarray:
-    if "SACR" in trial.names:
-        return trial.marker("SACR")
-    return 0.5 * (trial.marker("RPSI") + trial.marker("LPSI"))
-
-
 def _require(trial: MarkerTrial, method: str) -> None:
     if method == "pig":
         need = list(LOWER_BODY_MARKERS)
@@ -111,7 +105,7 @@ def _check_geometry(trial: MarkerTrial) -> None:
     if not 0.15 < float(np.median(d)) < 0.45:
         raise InputError(trial.source, f"inter-ASIS marker distance {np.median(d):.4g} m is implausible "
                                        "(expected 0.15-0.45 m): wrong units in the file?")
-    pel = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), _sacrum(trial))
+    pel = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), sacrum_marker(trial))
     for s in "RL":
         if f"{s}KNE" not in trial.names:
             continue
@@ -123,48 +117,35 @@ def _check_geometry(trial: MarkerTrial) -> None:
 
 
 def _frame(origin, z, y_hint) -> SegmentPose:
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = z / np.linalg.norm(z, axis=-1, keepdims=True)
-        y = y_hint - np.sum(y_hint * z, -1, keepdims=True) * z
-        y = y / np.linalg.norm(y, axis=-1, keepdims=True)
+    z = unit_vectors(z)
+    y = unit_vectors(y_hint - np.sum(y_hint * z, -1, keepdims=True) * z)
     return SegmentPose(np.asarray(origin, float), np.stack([np.cross(y, z), y, z], axis=-1))
 
 
 def _frame_y(origin, y, z_hint) -> SegmentPose:
     """Frame with y exact (a hinge axis) and z the component of z_hint orthogonal to it."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = z_hint - np.sum(z_hint * y, -1, keepdims=True) * y
-        z = z / np.linalg.norm(z, axis=-1, keepdims=True)
+    z = unit_vectors(z_hint - np.sum(z_hint * y, -1, keepdims=True) * y)
     return SegmentPose(np.asarray(origin, float), np.stack([np.cross(y, z), y, z], axis=-1))
 
 
 def _foot(trial: MarkerTrial, s: str, tibia_torsioned: SegmentPose) -> SegmentPose:
     """Anatomical foot: origin TOE, z = unit(HEE - TOE), x = unit(y_tibia × z) (Plug-in-Gait's corrected foot)."""
     toe, hee = trial.marker(f"{s}TOE"), trial.marker(f"{s}HEE")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = (hee - toe) / np.linalg.norm(hee - toe, axis=-1, keepdims=True)
-        x = np.cross(tibia_torsioned.axes[..., 1], z)
-        x = x / np.linalg.norm(x, axis=-1, keepdims=True)
+    z = unit_vectors(hee - toe)
+    x = unit_vectors(np.cross(tibia_torsioned.axes[..., 1], z))
     return SegmentPose(toe, np.stack([x, np.cross(z, x), z], axis=-1))
-
-
-def _median_cov(c: np.ndarray) -> np.ndarray:
-    ok = np.all(np.isfinite(c), axis=(1, 2))
-    return np.median(c[ok], axis=0) if ok.any() else np.full((3, 3), np.nan)
 
 
 def _functional_hips_score(functional: MarkerTrial) -> dict:
     """SCoRE hip centres in the Plug-in-Gait pelvis frame from the pelvis and thigh marker clusters."""
-    from .segments import rigid_pose
+    from .segments import cluster_reference, rigid_pose
 
     out = {}
-    pel = pelvis_frame(functional.marker("RASI"), functional.marker("LASI"), _sacrum(functional))
-    for s, sfx in SIDES:
+    pel = pelvis_frame(functional.marker("RASI"), functional.marker("LASI"), sacrum_marker(functional))
+    for s, _ in SIDES:
         thigh = [m for m in (f"{s}THI", f"{s}KNE", f"{s}THIP", f"{s}THIA", f"{s}KNEM") if m in functional.names]
         if len(thigh) < 3:
             raise InputError(functional.source, f"functional hip (SCoRE) needs 3 {s} thigh markers; found {', '.join(thigh) or 'none'}")
-        from .segments import cluster_reference
-
         b = functional.subset(thigh).positions
         try:
             ref = cluster_reference(b)
@@ -180,20 +161,21 @@ def _functional_hips_score(functional: MarkerTrial) -> dict:
 
 def _pig_with_hips(trial: MarkerTrial, subject: SubjectMeasurements, hips_local: dict) -> tuple[dict, dict, dict]:
     """Plug-in-Gait chain with given hip centres (pelvis frame) instead of the Davis regression."""
-    M = trial.marker
-    pelvis = pelvis_frame(M("RASI"), M("LASI"), _sacrum(trial))
-    r = 0.5 * subject.marker_diameter
-    segs, centres = {"pelvis": pelvis}, {}
-    for s, sfx in SIDES:
-        m = subject.side(s)
-        hip = pelvis.to_lab(hips_local[s])
-        knee = chord_joint_centre(M(f"{s}THI"), hip, M(f"{s}KNE"), 0.5 * m["knee_width"] + r)
-        ankle = chord_joint_centre(M(f"{s}TIB"), knee, M(f"{s}ANK"), 0.5 * m["ankle_width"] + r)
-        centres.update({f"hip{sfx}": hip, f"knee{sfx}": knee, f"ankle{sfx}": ankle})
-        segs[f"femur{sfx}"] = femur_frame(hip, knee, M(f"{s}KNE"), s)
-        segs[f"tibia{sfx}"] = tibia_frame(knee, ankle, M(f"{s}TIB"), M(f"{s}ANK"), s)
-        segs[f"tibia_torsioned{sfx}"] = tibia_frame(knee, ankle, M(f"{s}TIB"), M(f"{s}ANK"), s, m["tibial_torsion"])
-    return segs, centres, pelvis
+    pelvis = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), sacrum_marker(trial))
+    legs, centres = leg_chain(trial, subject, {s: pelvis.to_lab(hips_local[s]) for s, _ in SIDES})
+    return _our_segment_names({"pelvis": pelvis, **legs}), centres, pelvis
+
+
+def _our_segment_names(pig_segments: dict) -> dict:
+    """Plug-in-Gait segments under this module's names: ``tibia`` untorsioned, ``tibia_torsioned`` with torsion."""
+    segs = {"pelvis": pig_segments["pelvis"]}
+    for _, sfx in SIDES:
+        segs[f"femur{sfx}"] = pig_segments[f"femur{sfx}"]
+        segs[f"tibia{sfx}"] = pig_segments[f"tibia_untorsioned{sfx}"]
+        segs[f"tibia_torsioned{sfx}"] = pig_segments[f"tibia{sfx}"]
+        if f"foot{sfx}" in pig_segments:
+            segs[f"foot{sfx}"] = pig_segments[f"foot{sfx}"]
+    return segs
 
 
 def _chord_cov(trial, subject, s, centres, pelvis, cov_hip_pelvis, h: float = 1e-4) -> dict:
@@ -203,24 +185,13 @@ def _chord_cov(trial, subject, s, centres, pelvis, cov_hip_pelvis, h: float = 1e
     chord functions: Cov(knee) = J_k Cov(hip) J_kᵀ, J_k = ∂knee/∂hip (central
     differences), likewise the ankle through ∂ankle/∂knee; median over frames.
     """
-    m = subject.side(s)
-    r = 0.5 * subject.marker_diameter
     sfx = "_r" if s == "R" else "_l"
-    hip, knee = centres[f"hip{sfx}"], centres[f"knee{sfx}"]
-    dk, da = 0.5 * m["knee_width"] + r, 0.5 * m["ankle_width"] + r
-    thi, kne, tib, ank = (trial.marker(f"{s}{n}") for n in ("THI", "KNE", "TIB", "ANK"))
-    Jk = np.empty(hip.shape + (3,))
-    Ja = np.empty(hip.shape + (3,))
-    for i in range(3):
-        e = np.zeros(3)
-        e[i] = h
-        Jk[..., i] = (chord_joint_centre(thi, hip + e, kne, dk) - chord_joint_centre(thi, hip - e, kne, dk)) / (2 * h)
-        Ja[..., i] = (chord_joint_centre(tib, knee + e, ank, da) - chord_joint_centre(tib, knee - e, ank, da)) / (2 * h)
+    Jk, Ja = chord_centre_jacobians(trial, subject, s, centres[f"hip{sfx}"], centres[f"knee{sfx}"], h)
     R = pelvis.axes
     c_hip = R @ cov_hip_pelvis @ np.swapaxes(R, 1, 2)
     c_knee = Jk @ c_hip @ np.swapaxes(Jk, 1, 2)
     c_ankle = Ja @ c_knee @ np.swapaxes(Ja, 1, 2)
-    return {f"hip{sfx}": _median_cov(c_hip), f"knee{sfx}": _median_cov(c_knee), f"ankle{sfx}": _median_cov(c_ankle)}
+    return {f"hip{sfx}": median_covariance(c_hip), f"knee{sfx}": median_covariance(c_knee), f"ankle{sfx}": median_covariance(c_ankle)}
 
 
 def _reconstruct_pig(trial, subject, static, functional, notes) -> Reconstruction:
@@ -228,13 +199,7 @@ def _reconstruct_pig(trial, subject, static, functional, notes) -> Reconstructio
         subject = static_foot_offsets(static, subject)
     if functional is None:
         res = plug_in_gait(trial, subject)
-        segs = {"pelvis": res.segments["pelvis"]}
-        for s, sfx in SIDES:
-            segs[f"femur{sfx}"] = res.segments[f"femur{sfx}"]
-            segs[f"tibia{sfx}"] = res.segments[f"tibia_untorsioned{sfx}"]
-            segs[f"tibia_torsioned{sfx}"] = res.segments[f"tibia{sfx}"]
-            if f"foot{sfx}" in res.segments:
-                segs[f"foot{sfx}"] = res.segments[f"foot{sfx}"]
+        segs = _our_segment_names(res.segments)
         notes += list(res.notes)
         return Reconstruction("pig", trial.time, res.centres, res.centre_cov, segs, res.angles, {}, tuple(notes), trial.source)
     hip_est = _functional_hips_score(functional)
@@ -264,7 +229,7 @@ def _shanks(trial: MarkerTrial, cal: FootToHipCalibration) -> dict:
 
 
 def _ctt_hips(trial: MarkerTrial, cal: FootToHipCalibration, planar: bool = True) -> dict:
-    pelvis = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), _sacrum(trial))
+    pelvis = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), sacrum_marker(trial))
     out = {}
     for s, sh in _shanks(trial, cal).items():
         fem = seed_femur_frame(sh.knee, sh.knee_axis, trial.marker(f"{s}THI"), s)
@@ -295,7 +260,7 @@ def _shank_cov(trial: MarkerTrial, cal: FootToHipCalibration, s: str, sd: float,
         m = knee_ankle_axes(*(X - dX).transpose(1, 0, 2), cal.d_knee[s], cal.d_ankle[s], s, cal.foot_offset[s], cal.axis_rotation[s])
         Jk[:, :, j] = (p.knee - m.knee) / (2 * h)
         Ja[:, :, j] = (p.ankle - m.ankle) / (2 * h)
-    return (_median_cov(sd**2 * Jk @ np.swapaxes(Jk, 1, 2)), _median_cov(sd**2 * Ja @ np.swapaxes(Ja, 1, 2)))
+    return (median_covariance(sd**2 * Jk @ np.swapaxes(Jk, 1, 2)), median_covariance(sd**2 * Ja @ np.swapaxes(Ja, 1, 2)))
 
 
 def _reconstruct_f2h(trial, subject, static, functional, notes, marker_sd) -> Reconstruction:
@@ -306,7 +271,7 @@ def _reconstruct_f2h(trial, subject, static, functional, notes, marker_sd) -> Re
     notes.append("hip centres: centre transformation technique on "
                  + ("the functional trial (3-D)" if functional is not None
                     else "this trial, in the thigh-shank plane (eq. 30; no functional trial given)"))
-    pelvis = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), _sacrum(trial))
+    pelvis = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), sacrum_marker(trial))
     segs = {"pelvis": pelvis}
     centres, cov, angles = {}, {}, {}
     for (s, sfx), sh in zip(SIDES, _shanks(trial, cal).values()):
@@ -326,7 +291,7 @@ def _reconstruct_f2h(trial, subject, static, functional, notes, marker_sd) -> Re
         angles[f"knee{sfx}"] = joint_angles(segs[f"femur{sfx}"], segs[f"tibia{sfx}"], "knee", s)
         angles[f"ankle{sfx}"] = joint_angles(segs[f"tibia_torsioned{sfx}"], segs[f"foot{sfx}"], "ankle", s)
         R = pelvis.axes
-        cov[f"hip{sfx}"] = _median_cov(R @ hip_est[s].cov_proximal @ np.swapaxes(R, 1, 2))
+        cov[f"hip{sfx}"] = median_covariance(R @ hip_est[s].cov_proximal @ np.swapaxes(R, 1, 2))
         cov[f"knee{sfx}"], cov[f"ankle{sfx}"] = _shank_cov(trial, cal, s, marker_sd)
     return Reconstruction("foot-to-hip", trial.time, centres, cov, segs, angles, hip_est, tuple(notes), trial.source)
 

@@ -33,7 +33,7 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import write_text
 from .errors import InputError
 from .markers import MarkerTrial
 
@@ -227,9 +227,7 @@ def write_trc(path: str | os.PathLike, trial: MarkerTrial, units: str = "mm") ->
         vals = "\t".join(_fmt(v, spec) for v in pos[f].ravel())
         # Trailing tab as OpenSim/Vicon files have: OpenSim drops one trailing empty field.
         out.append(f"{f + 1}\t{trial.time[f]:.6f}\t{vals}\t")
-    with atomic_path(path) as tmp:
-        tmp.write_text("\n".join(out) + "\n", encoding="utf-8")
-    return path
+    return write_text(path, "\n".join(out) + "\n")
 
 
 # --------------------------------------------------------------------- MOT / STO
@@ -434,9 +432,7 @@ def _write_table(path: Path, first_line: str, keys: list[str], free_lines: list[
     out = [first_line] + keys + free_lines + ["endheader", "\t".join(["time"] + names)]
     for t, row in zip(time, values):
         out.append("\t".join([f"{t:.8f}"] + [repr(float(v)) if not math.isfinite(v) else f"{v:.10g}" for v in row]))
-    with atomic_path(path) as tmp:
-        tmp.write_text("\n".join(out) + "\n", encoding="utf-8")
-    return path
+    return write_text(path, "\n".join(out) + "\n")
 
 
 def write_mot(path: str | os.PathLike, names: Sequence[str], time, values, in_degrees: bool = True,

@@ -37,22 +37,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
-from .joints import Joint, Transform
+from .joints import Joint, Transform, skew
 from .model import Body, Model
 
 __all__ = [
     "FrameState", "ScalarState", "RigidLink", "JointElement", "MassElement", "AppliedLoad",
-    "TransmissionChain", "ChainState", "skew",
+    "TransmissionChain", "ChainState", "skew", "in_frame",
 ]
 
 
-def skew(x) -> np.ndarray:
-    """Cross-product matrix [x]~ (..., 3, 3) with [x]~ y = x cross y (Taendl 2010, eq. 8)."""
-    x = np.asarray(x, float)
-    z = np.zeros(x.shape[:-1])
-    return np.stack([np.stack([z, -x[..., 2], x[..., 1]], -1),
-                     np.stack([x[..., 2], z, -x[..., 0]], -1),
-                     np.stack([-x[..., 1], x[..., 0], z], -1)], -2)
+# `skew` (re-exported from `joints`): the cross-product matrix [x]~ with [x]~ y = x cross y (Taendl 2010, eq. 8).
 
 
 def _mv(R, x):
@@ -60,9 +54,12 @@ def _mv(R, x):
     return np.einsum("...ij,...j->...i", R, x)
 
 
-def _mtv(R, x):
-    """R^T x."""
+def in_frame(R, x):
+    """R^T x: vectors x (..., 3) given in the reference frame, expressed in frames of orientation R (..., 3, 3)."""
     return np.einsum("...ji,...j->...i", R, x)
+
+
+_mtv = in_frame
 
 
 _cross = np.cross
@@ -140,12 +137,12 @@ class FrameState:
     def add_load(self, force=None, point=None, torque=None) -> None:
         """Accumulate a force (N, in ground) acting at `point` (m, in K) and a torque (N m, in ground)."""
         if force is not None:
-            fk = _mtv(self.R, np.broadcast_to(force, self.r.shape))
+            fk = in_frame(self.R, np.broadcast_to(force, self.r.shape))
             self.f = self.f + fk
             if point is not None:
                 self.tau = self.tau + _cross(np.broadcast_to(point, self.r.shape), fk)
         if torque is not None:
-            self.tau = self.tau + _mtv(self.R, np.broadcast_to(torque, self.r.shape))
+            self.tau = self.tau + in_frame(self.R, np.broadcast_to(torque, self.r.shape))
 
 
 @dataclass
@@ -259,10 +256,10 @@ class JointElement:
         w, al = K.omega, K.alpha
         wxp = _cross(w, p)
         return FrameState(K.R @ R, K.r + _mv(K.R, p),
-                          _mtv(R, w + w_rel),
-                          _mtv(R, K.v + wxp + v_rel),
-                          _mtv(R, al + _cross(w, w_rel) + wd_rel),
-                          _mtv(R, K.a + _cross(al, p) + _cross(w, wxp) + 2.0 * _cross(w, v_rel) + vd_rel))
+                          in_frame(R, w + w_rel),
+                          in_frame(R, K.v + wxp + v_rel),
+                          in_frame(R, al + _cross(w, w_rel) + wd_rel),
+                          in_frame(R, K.a + _cross(al, p) + _cross(w, wxp) + 2.0 * _cross(w, v_rel) + vd_rel))
 
     def do_force(self, Kout: FrameState, K: FrameState, qj) -> np.ndarray:
         """Add the output load to F's accumulators; return the generalised forces Q_j (N, k)."""
@@ -298,7 +295,7 @@ class MassElement:
         if self.mass == 0.0 and not np.any(self.inertia):
             return
         s = np.broadcast_to(self.com, K.r.shape)
-        f = np.zeros_like(K.r) if gravity is None else self.mass * _mtv(K.R, np.broadcast_to(gravity, K.r.shape))
+        f = np.zeros_like(K.r) if gravity is None else self.mass * in_frame(K.R, np.broadcast_to(gravity, K.r.shape))
         tau = np.zeros_like(K.r)
         if inertia:
             w = K.omega

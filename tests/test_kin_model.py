@@ -10,8 +10,8 @@ from kin_helpers import KNEE_X, leg_model
 from kinematics.coupling import LinearCoupling, initial_projector, null_space_parametrization, restoring_variation
 from kinematics.errors import InputError
 from kinematics.functions import Constant, Linear, Multiplier, MultivariateLinear, NaturalCubicSpline, SimmSpline
-from kinematics.joints import (ExpMapSpherical, SwingJoint, Transform, euler_to_matrix, exp_so3, revolute,
-                               rotation_about)
+from kinematics.joints import (ExpMapSpherical, SwingJoint, Transform, euler_to_matrix, exp_so3,
+                               left_jacobian_inverse_so3, left_jacobian_so3, revolute, rotation_about)
 from kinematics.model import Body, Coordinate, Marker, Model
 
 
@@ -146,6 +146,13 @@ def _numeric_subspace(joint, qj, h=1e-6):
     return S
 
 
+def test_so3_left_jacobian_inverse_inverts_the_left_jacobian():
+    rng = np.random.default_rng(3)
+    r = rng.normal(size=(6, 3)) * np.array([[1e-9], [1e-7], [1e-3], [0.5], [2.0], [3.0]])
+    eye = np.broadcast_to(np.eye(3), (6, 3, 3))
+    np.testing.assert_allclose(left_jacobian_inverse_so3(r) @ left_jacobian_so3(r), eye, atol=1e-12)
+
+
 def test_motion_subspaces_match_finite_differences(model):
     rng = np.random.default_rng(3)
     for joint in model.joints:
@@ -198,6 +205,20 @@ def test_linear_coupling_projector_and_restoration():
     q_p, N = null_space_parametrization(both.matrix, both.rhs)
     np.testing.assert_allclose(N @ N.T, P, atol=1e-12)
     np.testing.assert_allclose(restoring_variation(both.matrix, both.rhs, q), qr - q, atol=1e-14)
+
+
+def test_linear_coupling_without_drops_exactly_the_rows_touching_the_names():
+    names = ("a", "b", "c", "d")
+    both = LinearCoupling.correlative(names, "a", {"b": 0.5, "c": -0.25}, 0.1).stack(
+        LinearCoupling.correlative(names, "d", {"b": 2.0}, 0.0))
+    kept = both.without({"c"})                     # only row 0 reads c
+    assert kept.labels == (both.labels[1],)
+    np.testing.assert_array_equal(kept.matrix, both.matrix[1:])
+    np.testing.assert_array_equal(kept.rhs, both.rhs[1:])
+    assert both.without({"b"}) is None             # both rows read b
+    same = both.without({"zz"})                    # unknown names drop nothing
+    np.testing.assert_array_equal(same.matrix, both.matrix)
+    assert same.labels == both.labels
     with pytest.raises(InputError, match="inconsistent"):
         null_space_parametrization(np.vstack([both.matrix[0], both.matrix[0]]), [0.0, 1.0])
 

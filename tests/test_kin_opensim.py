@@ -133,16 +133,16 @@ def test_coupler_constraint_scale_factor_matches_opensim(tmp_path, opensim):
 def test_multivariate_linear_matches_opensim_evaluation_both_ways(opensim):
     """Order-1 MultivariatePolynomialFunction coefficients map to the right inputs (OpenSim reverses them)."""
     from kinematics.functions import MultivariateLinear
-    from kinematics.opensim_io import _function, _to_osim_function
+    from kinematics.opensim_io import function_from_opensim, function_to_opensim
 
     f = MultivariateLinear(np.array([0.011, -0.023, 0.037]), 0.004)
-    om = _to_osim_function(opensim, f)
+    om = function_to_opensim(opensim, f)
     rng = np.random.default_rng(7)
     for x in rng.normal(size=(5, 3)):
         v = opensim.Vector(3, 0.0)
         for i in range(3):
             v.set(i, float(x[i]))
         assert abs(om.calcValue(v) - f.evaluate(x, order=0)[0][0]) < 1e-14
-    back = _function(opensim, om, "test", None)
+    back = function_from_opensim(opensim, om, "test", None)
     np.testing.assert_allclose(back.coefficients, f.coefficients, atol=1e-15)
     assert back.intercept == pytest.approx(f.intercept, abs=1e-15)
