@@ -1,0 +1,170 @@
+"""Benchmark: landmarks and joints from bone surfaces (issue F3).
+
+1. Wall time on the ICL-MRI bone set (``../shared/data/bones/ICL_MRI``):
+   detection only (surfaces already in memory) and reading + detection,
+   median of ``--repeat`` runs; CPU time is printed too (the honest figure on
+   a shared machine).  Target: detection < 2 s on 2 cores (STAPLE: 6-12 s in
+   MATLAB on comparable sets).
+2. Real bones against the hand-built model ``manual_ICL_MRI.osim``: distance
+   of the hip, knee, ankle and subtalar joint centres and unsigned angle of
+   their Z axes, for this code and for the STAPLE model
+   ``automatic_ICL_MRI.osim``.  For the subtalar joint, whose origin along
+   the axis is a convention, the distance from the reference centre to the
+   detected axis line is printed as well.
+3. TLEM2-MRI, both sides (no reference model): joint centres, left/right
+   consistency (segment lengths, knee-ankle axis angle) and flags.
+4. ``--phantom``: errors over 10 phantom seeds at 1 mm isotropic and at
+   0.5 x 0.5 x 2 mm with segmentation noise (95th percentiles; slow).
+
+Usage::
+
+    python benchmarks/landmarks.py [--repeat 3] [--phantom] [--json benchmarks/results/landmarks.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+DATA = Path(os.environ.get("PERSONALIZE_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def timing(repeat: int) -> dict:
+    from personalize.frames import joints_from_landmarks
+    from personalize.landmarks import detect_landmarks
+    from personalize.surfaces import load_bones
+
+    folder = DATA / "bones" / "ICL_MRI"
+    load_bones(folder)                                   # warm-up: imports, caches
+    read, det, cpu_det = [], [], []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        surfaces = load_bones(folder)
+        t1 = time.perf_counter()
+        c1 = time.process_time()
+        ls = detect_landmarks(surfaces)
+        joints_from_landmarks(ls)
+        t2 = time.perf_counter()
+        cpu_det.append(time.process_time() - c1)
+        read.append(t1 - t0)
+        det.append(t2 - t1)
+    n_vert = sum(len(s.mesh.vertices) for s in surfaces.values())
+    out = {"bones": sorted(surfaces), "vertices": int(n_vert),
+           "detect_s": float(np.median(det)), "detect_cpu_s": float(np.median(cpu_det)),
+           "read_plus_detect_s": float(np.median(np.add(read, det))), "repeat": repeat,
+           "cores": os.cpu_count()}
+    print(f"ICL-MRI ({len(surfaces)} bones, {n_vert} vertices): detection {out['detect_s']:.2f} s "
+          f"(CPU {out['detect_cpu_s']:.2f} s), reading + detection {out['read_plus_detect_s']:.2f} s "
+          f"[median of {repeat}; target < 2 s excluding reading]")
+    return out
+
+
+def reference_comparison() -> dict:
+    from personalize.frames import joints_from_landmarks
+    from personalize.landmarks import detect_landmarks
+    from personalize.reference_models import compare_joints, read_reference_joints
+    from personalize.surfaces import load_bones
+
+    ref = DATA / "reference_models"
+    manual = read_reference_joints(ref / "manual_ICL_MRI.osim", use_opensim=False)
+    staple = read_reference_joints(ref / "automatic_ICL_MRI.osim", use_opensim=False)
+    ls = detect_landmarks(load_bones(DATA / "bones" / "ICL_MRI"))
+    J, _ = joints_from_landmarks(ls)
+    names = ["hip_r", "knee_r", "ankle_r", "subtalar_r"]
+    ours = compare_joints(J, manual, names)
+    st = compare_joints(staple, manual, names)
+    print("\nICL-MRI: difference from the hand-built model (manual_ICL_MRI.osim)")
+    print(f"{'joint':12s} {'ours mm':>9s} {'STAPLE mm':>10s} {'ours deg':>9s} {'STAPLE deg':>11s}  note")
+    for n in names:
+        note = ""
+        if "line_distance_mm" in ours[n]:
+            note = (f"centre-to-axis-line: ours {ours[n]['line_distance_mm']:.2f} mm, "
+                    f"STAPLE {st[n]['line_distance_mm']:.2f} mm")
+        print(f"{n:12s} {ours[n]['distance_mm']:9.2f} {st[n]['distance_mm']:10.2f} {ours[n]['angle_deg']:9.2f} "
+              f"{st[n]['angle_deg']:11.2f}  {note}")
+    print("(angles between Z axes are unsigned; the hip Z is the pelvic frame's, as in both models)")
+    return {"ours": ours, "staple": st, "flags": {k: v.flags for k, v in ls.bones.items() if v.flags}}
+
+
+def tlem2() -> dict:
+    from personalize.frames import joints_from_landmarks
+    from personalize.landmarks import detect_landmarks
+    from personalize.surfaces import load_bones
+
+    ls = detect_landmarks(load_bones(DATA / "bones" / "TLEM2_MRI"))
+    J, dropped = joints_from_landmarks(ls)
+    print("\nTLEM2-MRI (both sides; no reference model): joint centres (mm, MRI frame) and Z axes")
+    out = {"joints": {}, "dropped": dropped, "sides": {k: v.side for k, v in ls.bones.items()},
+           "flags": {k: v.flags for k, v in ls.bones.items() if v.flags}}
+    for k in sorted(J):
+        j = J[k]
+        out["joints"][k] = {"origin_mm": (j.origin * 1e3).round(2).tolist(), "z": j.rotation[:, 2].round(4).tolist(),
+                            "axis_sd_deg": round(j.axis_sd_deg, 3)}
+        print(f"{k:12s} origin {np.round(j.origin * 1e3, 1)}  Z {np.round(j.rotation[:, 2], 3)}  sd {j.axis_sd_deg:.2f} deg")
+    rows = {}
+    for s in ("r", "l"):
+        if {f"hip_{s}", f"knee_{s}", f"ankle_{s}"} <= set(J):
+            thigh = np.linalg.norm(J[f"hip_{s}"].origin - J[f"knee_{s}"].origin) * 1e3
+            shank = np.linalg.norm(J[f"knee_{s}"].origin - J[f"ankle_{s}"].origin) * 1e3
+            tors = np.degrees(np.arccos(np.clip(J[f"knee_{s}"].rotation[:, 2] @ J[f"ankle_{s}"].rotation[:, 2], -1, 1)))
+            rows[s] = {"thigh_mm": thigh, "shank_mm": shank, "knee_ankle_axis_deg": tors}
+            print(f"side {s}: hip-knee {thigh:.1f} mm, knee-ankle {shank:.1f} mm, knee/ankle axis angle {tors:.1f} deg")
+    out["consistency"] = rows
+    for k, v in out["flags"].items():
+        print(f"  flags {k}: {v}")
+    print(f"  sides detected: {out['sides']}")
+    return out
+
+
+def phantom(n_seeds: int) -> dict:
+    from personalize.landmarks.evaluate import TOLERANCES, phantom_case
+
+    res = {}
+    for label, voxel, noise, tol_mult in (("iso_1mm", (1e-3,) * 3, 0.0, 1.0),
+                                          ("aniso_0.5x0.5x2_noise0.5", (0.5e-3, 0.5e-3, 2e-3), 0.5, 2.0)):
+        rows = []
+        for s in range(n_seeds):
+            e = phantom_case(s, voxel=voxel, noise=noise)["errors"]
+            rows.append(e)
+            print(f"  {label} seed {s}: " + ", ".join(f"{k} {v:.3f}" for k, v in e.items()), flush=True)
+        p95 = {k: float(np.nanpercentile([r[k] for r in rows], 95)) if any(np.isfinite(r[k]) for r in rows)
+               else float("nan") for k in TOLERANCES}
+        print(f"{label}: 95th percentiles over {n_seeds} seeds (tolerance x{tol_mult:g}):")
+        for k, v in p95.items():
+            lim = tol_mult * TOLERANCES[k]
+            print(f"   {k:16s} {v:8.3f}  (limit {lim:g}) {'ok' if v <= lim else 'FAIL' if np.isfinite(v) else 'n/a'}")
+        res[label] = {"per_seed": rows, "p95": p95}
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--phantom", action="store_true", help="also run 10 phantom seeds (slow)")
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "landmarks.json")
+    args = ap.parse_args()
+    out = {"units": {"time": "s", "distance": "mm", "angle": "deg"}}
+    if (DATA / "bones" / "ICL_MRI").is_dir():
+        out["timing"] = timing(args.repeat)
+        out["icl_vs_manual"] = reference_comparison()
+        out["tlem2"] = tlem2()
+    else:
+        print(f"shared data not found at {DATA}: real-bone parts skipped")
+    if args.phantom:
+        out["phantom"] = phantom(args.seeds)
+    from kinematics.atomic import write_text
+
+    write_text(args.json, json.dumps(out, indent=1, default=float) + "\n")
+    print(f"\nwritten {args.json}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,97 @@
+"""``personalize bones INPUT --out DIR``: landmarks, joint centres and axes from bone surfaces.
+
+INPUT is a label volume (.nii, .nii.gz, .nrrd) or a folder of bone meshes.
+Writes, all in the input's coordinates (metres):
+
+* ``landmarks.json`` - per bone: landmarks (position, 3x3 covariance), axes
+  (point, direction, sd_deg), scalars, frames and flags;
+* ``joints.json`` - hip, knee, ankle, subtalar, mtp per side: origin,
+  origin_cov, rotation (columns X, Y, Z; Z = main rotation axis), axis_sd_deg,
+  plus the joints that could not be built and why;
+* ``fits.json`` - every fitted primitive;
+* ``<bone>.png`` - the surface, fitted primitives and landmarks, two views.
+
+The folder is staged: on any error nothing is written.  Exit code 2 for
+unusable input (no recognisable bone, unreadable mesh, wrong units, ...).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+from kinematics.atomic import inside, staged_dir
+
+from ..errors import InputError
+
+
+def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: bool = True,
+              quiet: bool = False) -> dict:
+    """Library form of the command; returns ``{"landmarks": ..., "joints": ...}`` (JSON-ready)."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from ..frames import joints_from_landmarks
+    from ..landmarks import detect_landmarks
+    from ..surfaces import load_bones
+
+    console = Console(stderr=True, quiet=quiet)
+    with Progress(TextColumn("[bold]bones[/bold] {task.description}"), BarColumn(), TextColumn("{task.completed} bones"),
+                  TimeElapsedColumn(), console=console, transient=True) as prog:
+        task = prog.add_task(f"reading {input.name}", total=None)
+
+        def tick(bone: str) -> None:
+            prog.update(task, advance=1, description=f"{bone} done")
+
+        surfaces = load_bones(input, label_map, progress=tick)
+        if not surfaces:
+            raise InputError(input, "no recognisable bone surfaces")
+        prog.update(task, completed=0, description="detecting landmarks")
+        ls = detect_landmarks(surfaces, progress=tick)
+    joints, dropped = joints_from_landmarks(ls)
+    lm_json = ls.to_json()
+    lm_json["input"] = str(input)
+    lm_json["missing_bones"] = list(ls.missing)
+    j_json = {"units": "m", "frame": "input", "input": str(input),
+              "convention": "rotation columns are the joint frame's X, Y, Z axes; Z is the main rotation axis "
+                            "(hip and knee flexion, talocrural, subtalar, metatarsophalangeal); Z to the subject's "
+                            "right except subtalar (anterior)",
+              "joints": {k: v.to_json() for k, v in joints.items()},
+              "dropped": dropped}
+    fits = ls.fits_json()
+    with staged_dir(out) as stage:
+        for name, payload in (("landmarks.json", lm_json), ("joints.json", j_json), ("fits.json", fits)):
+            inside(stage, name).write_text(json.dumps(payload, indent=1), encoding="utf-8")
+        if png:
+            from ..landmarks.plot import plot_bone
+
+            for name, res in ls.bones.items():
+                s = surfaces.get(name)
+                if s is None:
+                    continue
+                plot_bone(s.mesh if hasattr(s, "mesh") else s, res, inside(stage, f"{name}.png"))
+    if not quiet:
+        n_low = sum("low_confidence" in b.flags for b in ls.bones.values())
+        console.print(f"[bold]bones[/bold]: {len(ls.bones)} bones, {len(joints)} joints -> {out}"
+                      + (f" ({n_low} low-confidence bone(s), see flags)" if n_low else "")
+                      + (f"; dropped: {', '.join(sorted(dropped))}" if dropped else ""))
+    return {"landmarks": lm_json, "joints": j_json}
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("bones")
+    def bones_cmd(
+        input: Path = typer.Argument(..., help="label volume (.nii/.nii.gz/.nrrd) or folder of bone meshes"),
+        out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+        label_map: Optional[Path] = typer.Option(None, "--label-map", help="JSON {bone: label} for label volumes"),
+        png: bool = typer.Option(True, "--png/--no-png", help="write a picture per bone"),
+        quiet: bool = typer.Option(False, "--quiet", "-q"),
+    ) -> None:
+        """Landmarks, joint centres and axes (with uncertainties) from bone surfaces."""
+        run_bones(input, out, label_map=label_map, png=png, quiet=quiet)
+
+
+_ = np

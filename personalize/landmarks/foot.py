@@ -1,0 +1,187 @@
+"""Calcaneus + forefoot (``calcn``) and toes: plantar support plane, ground contacts, foot axes.
+
+The plantar support plane is the plane tangent from below to the heel tuber
+and the first and fifth metatarsal heads: a face of the bone's convex hull.
+It is found by alternating "lowest point of the heel / first / fifth
+metatarsal region along the current down direction" and "plane through the
+three", which converges to that hull face in a few steps.  Each contact point
+is then refined on a sphere fitted to the surface around it (heel tuber,
+metatarsal head): the contact is the sphere's pole along the plane normal, so
+it does not depend on where the mesh vertices happen to lie.
+
+Superior comes from the talus / tibia when present (the talus sits on top of
+the calcaneus); alone, from the side of the convex hull opposite the largest
+hull face (the plantar triangle is the largest flat face of a foot).
+Anterior = from the heel to the metatarsal heads (long principal axis,
+oriented away from the calcaneal end, which is bulkier and higher).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from kinematics.errors import FitError
+
+from .common import (FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark, Surface, extreme_vertex, perpendicular,
+                     principal_axes, refine_sphere, sphere_centre_cov, unit)
+
+__all__ = ["detect_calcn", "detect_toes"]
+
+
+def _iso(s):
+    return (s * s) * np.eye(3)
+
+
+def _largest_hull_face_normal(V: np.ndarray) -> np.ndarray:
+    from scipy.spatial import ConvexHull
+
+    hull = ConvexHull(V)
+    T = V[hull.simplices]
+    n = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+    a = np.linalg.norm(n, axis=1)
+    k = int(np.argmax(a))
+    nk = n[k] / a[k]
+    # outward: away from the centroid
+    return nk if (T[k, 0] - V.mean(axis=0)) @ nk > 0 else -nk
+
+
+def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right_hint=None,
+                 talus: Surface | None = None) -> BoneLandmarks:
+    """Detect heel / metatarsal landmarks, ground contacts, foot axes and the foot frame.
+
+    Parameters
+    ----------
+    surface : Surface
+        Calcaneus with the mid- and fore-foot bones (STAPLE's ``calcn``).
+    up_hint, right_hint : (3,) arrays, optional
+        Superior and rightward directions from the leg (tibia / talus frames).
+    talus : Surface, optional
+        Used for the superior direction when `up_hint` is not given.
+    """
+    res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+    V, Nrm, A = surface.vertices, surface.normals, surface.areas
+    c, ax, sdv = principal_axes(V, A)
+    long_ax = ax[:, 0]
+    if up_hint is None and talus is not None:
+        up_hint = unit(perpendicular((talus.areas @ talus.vertices) / talus.areas.sum() - c, long_ax))
+    if up_hint is None:
+        down = _largest_hull_face_normal(V)
+        up = -down
+        res.flag(FLAG_LOW_CONFIDENCE, "superior direction of the foot from its own hull only")
+    else:
+        up = unit(np.asarray(up_hint, float))
+    # anterior: towards the metatarsal heads; the calcaneal end carries more bone higher up
+    fwd = unit(perpendicular(long_ax, up))
+    q = (V - c) @ fwd
+    L = float(q.max() - q.min())
+    back = q < q.min() + 0.25 * L
+    front = q > q.max() - 0.25 * L
+    hb = float((A[back] @ ((V[back] - c) @ up)) / A[back].sum())
+    hf = float((A[front] @ ((V[front] - c) @ up)) / A[front].sum())
+    if hf > hb:
+        fwd = -fwd
+        q = -q
+        back, front = front, back
+    if right_hint is not None:
+        right = unit(perpendicular(np.asarray(right_hint, float), up))
+        fwd = unit(perpendicular(fwd, right))
+        # keep the frame consistent: X = Y x Z must be forward
+        if np.cross(up, right) @ fwd < 0:
+            res.flag(FLAG_LOW_CONFIDENCE, "foot forward direction disagrees with the leg")
+    right = unit(np.cross(fwd, up))
+    side = res.side or "r"
+    med = -right if side == "r" else right
+    P = "R" if side == "r" else "L"
+    # ---- support plane iteration ----------------------------------------------------------
+    w = (V - c) @ med
+    L = float(q.max() - q.min())
+    heel_zone = q < q.min() + 0.3 * L
+    fore = q > q.max() - 0.3 * L
+    m1_zone = fore & (w > np.median(w[fore]))
+    m5_zone = fore & (w <= np.median(w[fore]))
+    n = -up
+    for _ in range(8):
+        h = V @ n
+        kh = np.flatnonzero(heel_zone)[np.argmax(h[heel_zone])]
+        k1 = np.flatnonzero(m1_zone)[np.argmax(h[m1_zone])]
+        k5 = np.flatnonzero(m5_zone)[np.argmax(h[m5_zone])]
+        nn = unit(np.cross(V[k1] - V[kh], V[k5] - V[kh]))
+        nn = nn if nn @ n > 0 else -nn
+        if np.allclose(nn, n, atol=1e-12):
+            break
+        n = nn
+    down = n
+    up = -down
+    # ---- contacts refined on local spheres ---------------------------------------------------
+    contacts = {}
+    for lab, k, rad in (("heel", kh, 0.012), ("met1", k1, 0.008), ("met5", k5, 0.008)):
+        near = np.linalg.norm(V - V[k], axis=1) < rad
+        pt, cov = V[k].copy(), _iso(0.001)
+        try:
+            from personalize.fitting import fit_sphere
+            f0 = fit_sphere(V[near], normals=Nrm[near])
+            f, sel = refine_sphere(V, Nrm, f0.centre, f0.radius, band=max(0.0008, 0.08 * f0.radius),
+                                   min_cos=0.5, mask=np.linalg.norm(V - V[k], axis=1) < 1.6 * rad)
+            if 0.003 < f.radius < 0.04:
+                pt = np.asarray(f.centre) + f.radius * down
+                cov = sphere_centre_cov(f) + float(np.asarray(f.covariance)[3, 3]) * np.outer(down, down)
+                res.fits[f"{lab}_sphere"] = {"type": "sphere", "centre": np.asarray(f.centre).tolist(),
+                                             "radius": float(f.radius), "rms": float(f.rms)}
+                contacts[lab] = (pt, f)
+        except FitError:
+            pass
+        if lab not in contacts:
+            contacts[lab] = (pt, None)
+        res.landmarks[f"{lab}_contact"] = Landmark(pt, cov)
+    # the contacts' own plane (after refinement) is the support plane
+    hc, m1c, m5c = (res.landmarks[f"{k}_contact"].position for k in ("heel", "met1", "met5"))
+    nrm = unit(np.cross(m1c - hc, m5c - hc))
+    up = nrm if nrm @ up > 0 else -nrm
+    # ---- marker-named landmarks ---------------------------------------------------------------
+    mc = 0.5 * (m1c + m5c)
+    Z = unit(np.cross(mc - hc, up))
+    X = np.cross(up, Z)
+    # heel marker: most posterior point of the heel (along the foot's long axis)
+    k = extreme_vertex(surface, -X, heel_zone, smooth=0.001)
+    res.landmarks[f"{P}HEE"] = Landmark(V[k].copy(), _iso(0.002))
+    dd = unit(X + up)
+    for lab, mk in (("met1", f"{P}D1M"), ("met5", f"{P}D5M")):
+        f = contacts[lab][1]
+        if f is not None:
+            res.landmarks[mk] = Landmark(np.asarray(f.centre) + f.radius * dd, sphere_centre_cov(f))
+            res.landmarks[f"{lab}_head_centre"] = Landmark(np.asarray(f.centre, float), sphere_centre_cov(f))
+    # ---- axes and frame ---------------------------------------------------------------------------
+    res.frames["foot"] = {"origin": hc.copy(), "rotation": np.column_stack([X, up, Z])}
+    # hindfoot: principal axis of the calcaneus block (posterior 45 % of the foot)
+    hind = q < q.min() + 0.45 * (q.max() - q.min())
+    ch, axh, _ = principal_axes(V[hind], A[hind])
+    res.axes["hindfoot_axis"] = Axis(point=ch, direction=unit(axh[:, 0] if axh[:, 0] @ X > 0 else -axh[:, 0]), sd_deg=3.0)
+    if "met1_head_centre" in res.landmarks and "met5_head_centre" in res.landmarks:
+        a = res.landmarks["met1_head_centre"].position
+        b = res.landmarks["met5_head_centre"].position
+        mid_head = 0.5 * (a + b)
+        res.axes["forefoot_axis"] = Axis(point=mid_head, direction=X.copy(), sd_deg=3.0)
+        d = b - a if side == "r" else a - b
+        ax5 = Axis(point=mid_head, direction=unit(d), sd_deg=float(np.degrees(
+            np.sqrt(np.trace(res.landmarks["met1_head_centre"].cov + res.landmarks["met5_head_centre"].cov) / 2)
+            / np.linalg.norm(d))))
+        res.axes["mtp_axis"] = ax5
+    res.frames["anatomical"] = {"origin": c, "rotation": np.column_stack([X, up, Z])}
+    return res
+
+
+def detect_toes(surface: Surface, name: str = "toes_r", calcn: BoneLandmarks | None = None) -> BoneLandmarks:
+    """MTP axis of the toes segment.
+
+    With the forefoot's metatarsal head spheres the axis is the line through
+    the first and fifth head centres (pointing right); alone, the line through
+    the two ends of the proximal phalanges' base row is used.
+    """
+    res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+    if calcn is not None and "mtp_axis" in calcn.axes:
+        res.axes["mtp_axis"] = calcn.axes["mtp_axis"]
+        return res
+    V, A = surface.vertices, surface.areas
+    c, ax, _ = principal_axes(V, A)
+    res.axes["mtp_axis"] = Axis(point=c, direction=ax[:, 0], sd_deg=10.0)
+    res.flag(FLAG_LOW_CONFIDENCE, "MTP axis from the toes' principal axis only")
+    return res

@@ -1,0 +1,213 @@
+"""Talus: trochlear dome cylinder (talocrural axis) and the subtalar axis.
+
+Articular surfaces are found from the bone's own shape, helped by its
+neighbours when they are present (bones segmented from one scan sit in their
+anatomical positions, so the talar dome is the part of the talus facing the
+tibia and the posterior facet the part facing the calcaneus):
+
+* dome: talus vertices whose normal points at the tibia within a gap of a few
+  millimetres; alone, the largest convex cylindrical patch found by Hough
+  voting along the normals;
+* talar head (talonavicular surface): the convex sphere-like end of the bone
+  farthest in front of the dome along the long axis;
+* posterior talocalcaneal facet: the concave inferior facet of the body
+  (facing the calcaneus) behind the sinus tarsi.
+
+The subtalar axis is the line through the centres of the spheres fitted to
+the posterior facet (concave, its centre lies in the calcaneus) and to the
+talar head, pointing anteriorly (after Parr et al. 2012, also used by STAPLE).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from kinematics.errors import FitError
+
+from .common import (FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark, Surface, axis_sd_deg,
+                     hough_centres, largest_patch, line_through, orient, perpendicular,
+                     principal_axes, refine_cylinder, refine_sphere, sphere_centre_cov, unit)
+
+__all__ = ["detect_talus"]
+
+DOME_RADII = np.arange(0.012, 0.0351, 0.0015)
+HEAD_RADII = np.arange(0.008, 0.0301, 0.0015)
+FACET_RADII = np.arange(0.012, 0.0501, 0.002)
+
+
+def _near(surface: Surface, other: Surface | None, gap: float) -> np.ndarray | None:
+    """Vertices of `surface` whose outward normal ray meets `other` within `gap` (approx.)."""
+    if other is None:
+        return None
+    d, j = other.tree().query(surface.vertices, distance_upper_bound=gap)
+    ok = np.isfinite(d)
+    out = np.zeros(len(surface.vertices), bool)
+    jj = j[ok]
+    vec = other.vertices[jj] - surface.vertices[ok]
+    nv = np.linalg.norm(vec, axis=1)
+    facing = np.einsum("ij,ij->i", vec, surface.normals[ok]) > 0.3 * np.maximum(nv, 1e-9)
+    # nearly touching points count even when the vector is tiny
+    out[np.flatnonzero(ok)] = facing | (nv < 0.0005)
+    return out
+
+
+def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | None = None,
+                 calcaneus: Surface | None = None, right_hint: np.ndarray | None = None,
+                 up_hint: np.ndarray | None = None) -> BoneLandmarks:
+    """Detect the talar dome cylinder and the subtalar axis.
+
+    Parameters
+    ----------
+    surface : Surface
+    name : str
+    tibia, calcaneus : Surface, optional
+        Neighbouring bones in the same frame (articular cues).
+    right_hint, up_hint : (3,) arrays, optional
+        The subject's right and superior directions from the tibia's frame.
+    """
+    res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+    V, Nrm, A = surface.vertices, surface.normals, surface.areas
+    c, ax, sdv = principal_axes(V, A)
+
+    # ---- dome ----------------------------------------------------------------------
+    dome_mask = None
+    near_tib = _near(surface, tibia, 0.006)
+    if up_hint is None and calcaneus is not None:
+        # the talus sits on the calcaneus: superior = away from the calcaneal contact
+        nc = _near(surface, calcaneus, 0.006)
+        if nc is not None and nc.sum() >= 20:
+            up_hint = unit(-(A[nc] @ Nrm[nc]))
+    if near_tib is not None and up_hint is not None:
+        near_tib &= Nrm @ up_hint > 0.3          # the trochlea, not the malleolar facets
+    if near_tib is not None and near_tib.sum() >= 30:
+        patches = largest_patch(surface, near_tib, 1)
+        dome_mask = patches[0] if patches else None
+    if up_hint is None and dome_mask is not None:
+        up_hint = unit((A[dome_mask] @ Nrm[dome_mask]))
+    fit = None
+    if dome_mask is not None:
+        try:
+            from personalize.fitting import fit_cylinder
+            hint = right_hint if right_hint is not None else ax[:, 1]
+            f0 = fit_cylinder(V[dome_mask], normals=Nrm[dome_mask], axis_hint=hint)
+            fit, sel, p, u = refine_cylinder(V, Nrm, f0.point, f0.axis, f0.radius,
+                                             band=max(0.0015, 0.08 * f0.radius), min_cos=0.6,
+                                             mask=_dome_zone(V, Nrm, f0, up_hint) & dome_mask)
+        except FitError as exc:
+            res.flag(FLAG_LOW_CONFIDENCE, f"talar dome cylinder (tibia contact): {exc}")
+            fit = None
+    if fit is None:
+        res.flag(FLAG_LOW_CONFIDENCE, "talar dome found without the tibia" if tibia is None else "talar dome from shape only")
+        peaks = hough_centres(V, Nrm, DOME_RADII, inward=False, tol=0.0015, n_peaks=3, min_separation=0.01)
+        for _, c0, r0 in peaks:
+            mask = None if up_hint is None else (Nrm @ up_hint > 0.0)
+            try:
+                fit, sel, p, u = refine_cylinder(V, Nrm, c0, ax[:, 1] if right_hint is None else right_hint, r0,
+                                                 band=max(0.0015, 0.08 * r0), min_cos=0.6, mask=mask)
+                break
+            except FitError:
+                fit = None
+    if fit is None:
+        res.flag(FLAG_LOW_CONFIDENCE, "talar dome not found")
+        return res
+    if up_hint is None:
+        up_hint = unit(A[sel] @ Nrm[sel])
+    if right_hint is not None:
+        u = orient(u, right_hint)
+    cov = np.asarray(fit.covariance)[:3, :3] + 1e-12 * np.eye(3)
+    # mid-dome along the axis: centre of the selected points' extent
+    res.landmarks["talar_dome_centre"] = Landmark(p.copy(), cov)
+    res.scalars["talar_dome_radius"] = float(fit.radius)
+    res.scalar_sd["talar_dome_radius"] = float(np.sqrt(max(np.asarray(fit.covariance)[-1, -1], 0.0)))
+    res.axes["ankle_axis"] = Axis(point=p.copy(), direction=u, sd_deg=axis_sd_deg(fit))
+    res.fits["talar_dome"] = {"type": "cylinder", "point": p.tolist(), "axis": u.tolist(), "radius": float(fit.radius),
+                              "rms": float(fit.rms), "n_points": int(sel.sum()), "converged": bool(fit.converged)}
+
+    # ---- anterior: the talar head projects farther in front of the dome than the
+    # posterior process behind it, along the long axis orthogonal to the dome axis
+    up = unit(perpendicular(up_hint, u))
+    fwd = np.cross(up, u)                        # anterior if u points right
+    q = (V - p) @ fwd
+    if -q.min() > q.max():
+        fwd = -fwd
+        if right_hint is None:
+            u = -u                               # keep (fwd, up, u) right-handed: u to the right
+            res.axes["ankle_axis"] = Axis(point=p.copy(), direction=u, sd_deg=res.axes["ankle_axis"].sd_deg)
+    elif right_hint is not None and q.max() < 1.2 * -q.min():
+        res.flag(FLAG_LOW_CONFIDENCE, "talar head not clearly anterior")
+    ant = fwd
+    res.frames["anatomical"] = {"origin": p.copy(), "rotation": np.column_stack([ant, up, np.cross(ant, up)])}
+
+    # ---- subtalar axis --------------------------------------------------------------------
+    _subtalar(surface, res, p, float(fit.radius), ant, up, calcaneus)
+    return res
+
+
+def _dome_zone(V, Nrm, f0, up_hint):
+    d = V - f0.point
+    radial = d - np.outer(d @ f0.axis, f0.axis)
+    m = np.linalg.norm(radial, axis=1) < 2.0 * f0.radius
+    if up_hint is not None:
+        m &= Nrm @ up_hint > -0.2
+    return m
+
+
+def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
+    V, Nrm, A = surface.vertices, surface.normals, surface.areas
+    q = (V - dome_p) @ ant
+    # talar head: anterior block, normals pointing forward
+    head_zone = (q > q.max() - 0.025) & (Nrm @ ant > 0.2)
+    head = None
+    if head_zone.sum() >= 20:
+        peaks = hough_centres(V[head_zone], Nrm[head_zone], HEAD_RADII, inward=False, tol=0.0015)
+        if peaks:
+            _, c0, r0 = peaks[0]
+            try:
+                head, hsel = refine_sphere(V, Nrm, c0, r0, band=max(0.0015, 0.1 * r0), min_cos=0.6,
+                                           mask=q > q.max() - 0.035)
+            except FitError as exc:
+                res.flag(FLAG_LOW_CONFIDENCE, f"talar head sphere: {exc}")
+    # posterior calcaneal facet: inferior, behind the dome centre
+    facet_zone = (Nrm @ (-up) > 0.3) & (q < 0.01)
+    near_cal = _near(surface, calcaneus, 0.006)
+    if near_cal is not None and (near_cal & facet_zone).sum() >= 20:
+        facet_zone &= near_cal
+    facet = None
+    if facet_zone.sum() >= 20:
+        # Concave facet: Hough votes along the normals, every peak refined, the
+        # refined sphere explaining most of the facet (rms under 1.2 mm) wins.
+        peaks = hough_centres(V[facet_zone], Nrm[facet_zone], FACET_RADII, inward=True, tol=0.002,
+                              n_peaks=4, min_separation=0.008)
+        best = None
+        for _, c0, r0 in peaks:
+            try:
+                f, fsel = refine_sphere(V, Nrm, c0, r0, band=max(0.0015, 0.08 * r0), convex=False,
+                                        min_cos=0.6, mask=facet_zone)
+            except FitError:
+                continue
+            below = (np.asarray(f.centre) - (A[fsel] @ V[fsel]) / A[fsel].sum()) @ up < 0
+            if not (below and 0.008 < f.radius < 0.06):
+                continue
+            score = (float(A[fsel].sum()) if f.rms < 0.0012 else 0.0, -f.rms)
+            if best is None or score > best[0]:
+                best = (score, f)
+        if best is not None:
+            facet = best[1]
+        else:
+            res.flag(FLAG_LOW_CONFIDENCE, "posterior talocalcaneal facet not found")
+    if head is None or facet is None:
+        res.flag(FLAG_LOW_CONFIDENCE, "subtalar axis not found")
+        return
+    hl = Landmark(np.asarray(head.centre, float), sphere_centre_cov(head))
+    fl = Landmark(np.asarray(facet.centre, float), sphere_centre_cov(facet))
+    res.landmarks["talar_head_centre"] = hl
+    res.landmarks["posterior_facet_centre"] = fl
+    ax = line_through(fl, hl)
+    d = orient(ax.direction, ant)
+    # the subtalar axis point closest to the dome centre (joint origin)
+    o = fl.position + ((dome_p - fl.position) @ d) * d
+    res.axes["subtalar_axis"] = Axis(point=o, direction=d, sd_deg=ax.sd_deg)
+    res.fits["talar_head"] = {"type": "sphere", "centre": hl.position.tolist(), "radius": float(head.radius),
+                              "rms": float(head.rms), "converged": bool(head.converged)}
+    res.fits["posterior_calcaneal_facet"] = {"type": "sphere", "centre": fl.position.tolist(),
+                                             "radius": float(facet.radius), "rms": float(facet.rms),
+                                             "converged": bool(facet.converged)}
