@@ -12,14 +12,20 @@
     on the ground (1), right toe backwards and hands reaching (2), head
     looking forward (3).  Count of torsion-direction changes between
     successive vertebrae inside a region (Fig. 8).
-(c) Same mannequins, hands on a figure eight (COM between the feet, feet on
+(c) Mannequins, hands on a figure eight (COM between the feet, feet on
     the ground, head forward), one IK step per goal sample: joint-space drift
-    of the posture after 5, 50, 100, 200, 600 and 2000 cycles from the posture
-    after the first cycle (Fig. 9).  ``drift_rad`` is the spine drift
+    of the posture after 1, 5, 50, 100, 200, 600 and 2000 cycles from the
+    posture after the first cycle (Fig. 9).  ``drift_rad`` is the spine drift
     (geodesic distance of the vertebral rotations, parametrisation-free, rad);
-    ``drift_all_rad`` the Euclidean distance over every rotational coordinate.
-    A third variant, ``uncoupled_unlimited``, drops the vertebral ranges of the
-    uncoupled spine (a generic ball-joint mannequin).
+    ``drift_posture_rad`` the same over every joint of the body (whole
+    posture, parametrisation-free); ``drift_all_rad`` the Euclidean distance
+    over every rotational coordinate.  Variants (see ``drift_variants``):
+    ``coupled``; ``uncoupled`` = the like-for-like baseline, the same
+    swing/twist joints and the SAME limit set (first joint of each region)
+    without the coupling constraints; ``uncoupled_all_joints_limited`` (ball
+    joints, every vertebral range enforced); ``uncoupled_unlimited`` (ball
+    joints, no vertebral range).  ``drift_bound_rad``: the a-priori bound of
+    the spine drift from the limits and couplings (`spine_drift_bound`).
 
 Usage::
 
@@ -50,10 +56,24 @@ from rich.progress import Progress  # noqa: E402
 from kinematics.atomic import staged_dir, write_text  # noqa: E402
 from kinematics.fk import forward_kinematics  # noqa: E402
 from kinematics.spine import (KinematicTasks, balanced_posture_tasks, isolated_spine,  # noqa: E402
-                              isolated_spine_tasks, mannequin, periodic_drift, spine_layout, spine_solver,
-                              swing_components, torsion_direction_changes, vertebral_twist)
+                              isolated_spine_tasks, mannequin, periodic_drift, spine_drift_bound, spine_layout,
+                              spine_solver, swing_components, torsion_direction_changes, vertebral_twist)
 
-CHECKPOINTS = (5, 50, 100, 200, 600, 2000)
+CHECKPOINTS = (1, 5, 50, 100, 200, 600, 2000)
+
+# figure-eight variants: mannequin keyword arguments and a statement of their spine limits
+DRIFT_VARIANTS = {
+    "coupled": (dict(coupled=True), "swing/twist vertebral joints (8 swing, 5 twist); ranges enforced on the first "
+                "swing and first twist joint of each region only (vl5, vl3 twist, vt10, vc7); 12 coupling equalities "
+                "and 12 inter-region inequalities keep the other joints in range"),
+    "uncoupled": (dict(coupled=False, joint_style="swing_twist", spine_limits="first"),
+                  "like-for-like baseline (uncoupled_same_limit_set): the same swing/twist joints and the SAME limit "
+                  "set as 'coupled' (first joint of each region: vl5, vl3 twist, vt10, vc7), no coupling constraints"),
+    "uncoupled_all_joints_limited": (dict(coupled=False), "8 exponential-map ball joints, every vertebral range "
+                                     "enforced (region range / number of joints), no coupling constraints"),
+    "uncoupled_unlimited": (dict(coupled=False, limit_spine=False), "8 exponential-map ball joints, no vertebral "
+                            "range enforced, no coupling constraints"),
+}
 
 
 def _solve_timed(model, tasks, iterations, repeats):
@@ -108,11 +128,9 @@ def experiment_balanced(repeats: int, spine: str = "simplified") -> dict:
 
 
 def experiment_drift(cycles: int, steps_per_cycle: int) -> dict:
-    variants = (("coupled", dict(coupled=True)), ("uncoupled", dict(coupled=False)),
-                ("uncoupled_unlimited", dict(coupled=False, limit_spine=False)))
     out = {}
     with Progress() as progress:
-        for label, kw in variants:
+        for label, (kw, _) in DRIFT_VARIANTS.items():
             model = mannequin("simplified", **kw)
             task = progress.add_task(f"figure eight, {label}", total=cycles)
             t0 = time.perf_counter()
@@ -120,6 +138,7 @@ def experiment_drift(cycles: int, steps_per_cycle: int) -> dict:
                                  progress=lambda c: progress.update(task, completed=c))
             res["wall_s"] = time.perf_counter() - t0
             res["model"] = model
+            res["bound"] = spine_drift_bound(model)
             out[label] = res
     return out
 
@@ -190,14 +209,15 @@ def plot_all(folder: Path, iso: dict, bal: dict, drift: dict | None) -> list[str
     files.append("fig8_vertebral_torsion.png")
     # Figure 9: drift
     if drift:
-        fig, axs = plt.subplots(1, 2, figsize=(10, 4))
+        fig, axs = plt.subplots(1, 2, figsize=(11, 4.5))
         for label, res in drift.items():
-            cs = sorted(res["drift_rad"])
+            cs = [c for c in sorted(res["drift_rad"]) if c > 1]
             axs[0].plot(cs, [res["drift_spine_rad"][c] for c in cs], "o-", label=label)
-            axs[1].plot(cs, [res["drift_rad"][c] for c in cs], "o-", label=label)
-        axs[0].set(xscale="log", xlabel="cycles", ylabel="spine drift (rad)", title="spine")
-        axs[1].set(xscale="log", xlabel="cycles", ylabel="drift, all rotational coordinates (rad)", title="whole posture")
-        axs[0].legend()
+            axs[1].plot(cs, [res["drift_posture_rad"][c] for c in cs], "o-", label=label)
+        axs[0].axhline(drift["coupled"]["bound"]["geodesic_rad"], color="C0", ls=":", label="coupled: a-priori bound")
+        axs[0].set(xscale="log", xlabel="cycles", ylabel="spine drift (rad, geodesic)", title="spine")
+        axs[1].set(xscale="log", xlabel="cycles", ylabel="drift, every joint (rad, geodesic)", title="whole posture")
+        axs[0].legend(fontsize=7)
         fig.tight_layout()
         fig.savefig(folder / "fig9_drift.png", dpi=120)
         plt.close(fig)
@@ -219,7 +239,7 @@ def plot_all(folder: Path, iso: dict, bal: dict, drift: dict | None) -> list[str
             _draw(ax, m, bal[label]["q"], view, color=col, lw=1)
         ax.set_title(f"balanced posture, {view}", fontsize=8)
     if drift:
-        for j, label in enumerate(("coupled", "uncoupled_unlimited")):
+        for j, label in enumerate(("coupled", "uncoupled")):
             res = drift[label]
             m = res["model"]
             last = max(res["postures"])
@@ -232,6 +252,11 @@ def plot_all(folder: Path, iso: dict, bal: dict, drift: dict | None) -> list[str
     plt.close(fig)
     files.append("postures.png")
     return files
+
+
+def _finite(x: float) -> float | None:
+    """JSON has no infinity: unbounded -> null."""
+    return float(x) if np.isfinite(x) else None
 
 
 def main(argv=None) -> int:
@@ -269,8 +294,28 @@ def main(argv=None) -> int:
         "balanced_posture": {k: {kk: vv for kk, vv in v.items() if kk not in ("model", "q")} for k, v in bal.items()},
     }
     if drift:
+        result["drift_measures"] = {
+            "drift_rad": "spine: sqrt(sum_v theta_v^2), theta_v the angle between vertebra v's rotation "
+                         "relative to the vertebra below after c cycles and after cycle 1 (rad)",
+            "drift_posture_rad": "whole posture: the same over every body relative to its parent (pelvis to ground; "
+                                 "translations excluded) (rad)",
+            "drift_all_rad": "whole posture: Euclidean |q(c) - q(1)| over every rotational coordinate (rad; depends on "
+                             "the joint parametrisation)"}
+        result["drift_variants"] = {
+            k: {"mannequin_kwargs": kw, "limits": text, "model": drift[k]["model"].name,
+                "clamped_spine_coordinates": [c.name for c in drift[k]["model"].coordinates
+                                              if c.clamped and c.name in drift[k]["bound"]["span_rad"]]}
+            for k, (kw, text) in DRIFT_VARIANTS.items()}
         result["drift_rad"] = {k: key(v["drift_spine_rad"]) for k, v in drift.items()}
+        result["drift_posture_rad"] = {k: key(v["drift_posture_rad"]) for k, v in drift.items()}
         result["drift_all_rad"] = {k: key(v["drift_rad"]) for k, v in drift.items()}
+        result["drift_bound_rad"] = {
+            k: {"note": "a-priori bounds of the spine drift from the enforced limits and couplings "
+                        "(spine_drift_bound); null = unbounded (some spine coordinate has no limit)",
+                "a_priori_geodesic": _finite(v["bound"]["geodesic_rad"]),
+                "a_priori_coordinate": _finite(v["bound"]["coordinate_rad"]),
+                "observed_max_over_checkpoints": max(v["drift_spine_rad"].values())}
+            for k, v in drift.items()}
         result["final_task_error"]["periodic_max_per_level"] = {k: v["max_task_error"] for k, v in drift.items()}
         result["periodic"] = {"cycles": args.cycles, "steps_per_cycle": args.steps_per_cycle,
                               "wall_s": {k: v["wall_s"] for k, v in drift.items()},
@@ -279,8 +324,10 @@ def main(argv=None) -> int:
                                                                  for k, v in drift.items()}}
         last = str(max(int(c) for c in result["drift_rad"]["coupled"]))
         result["drift_ratio_uncoupled_over_coupled"] = {
-            k: result["drift_rad"][k][last] / max(result["drift_rad"]["coupled"][last], 1e-300)
-            for k in result["drift_rad"] if k != "coupled"}
+            measure: {k: result[measure][k][last] / max(result[measure]["coupled"][last], 1e-300)
+                      for k in result[measure] if k != "coupled"}
+            for measure in ("drift_rad", "drift_posture_rad", "drift_all_rad")}
+        result["drift_ratio_uncoupled_over_coupled"]["at_cycles"] = int(last)
     result["wall_s"] = time.perf_counter() - t0
     with staged_dir(args.out) as stage:
         result["plots"] = plot_all(stage, iso, bal, drift)
@@ -289,7 +336,8 @@ def main(argv=None) -> int:
                                             "time_per_iteration_mannequin_s", "final_task_error")
                       if k in result}, indent=1))
     if drift:
-        print(json.dumps({k: result[k] for k in ("drift_rad", "drift_all_rad", "drift_ratio_uncoupled_over_coupled")},
+        print(json.dumps({k: result[k] for k in ("drift_rad", "drift_posture_rad", "drift_all_rad", "drift_bound_rad",
+                                                 "drift_ratio_uncoupled_over_coupled")},
                          indent=1))
     print(f"wrote {args.json} and {args.out}/")
     return 0

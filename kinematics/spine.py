@@ -34,7 +34,8 @@ lateral bending 20 per side, axial rotation 5 per side; thoracic 45 / 25 / 20
 / 35; cervical 40 / 75 / 35 / 45 - and are distributed over the joints of a
 region by segmental weights after White & Panjabi (1990).  Uncoupled variants
 use the same joints (``joint_style="swing_twist"``) or three-DOF
-exponential-map ball joints (``"ball"``) with every range enforced.
+exponential-map ball joints (``"ball"``), with every range enforced by default or,
+``spine_limits="first"``, the coupled spine's limit set (first joint of each region only).
 
 Frames: y superior (bone axis), x anterior, z to the right (OpenSim
 convention); metres, radians, kilograms.
@@ -47,7 +48,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .errors import InputError
+from .errors import FitError, InputError
 from .fk import KinematicState, forward_kinematics, point_positions
 from .joints import ExpMapSpherical, SwingJoint, Transform, free, revolute, spherical, universal, weld
 from .model import Body, Coordinate, Marker, Model
@@ -57,7 +58,7 @@ __all__ = [
     "RegionSpec", "SpineLayout", "spine_layout", "spine_constraints", "isolated_spine", "mannequin",
     "vertebral_twist", "torsion_direction_changes", "swing_components", "KinematicTasks", "REGIONS",
     "spine_solver", "isolated_spine_tasks", "balanced_posture_tasks", "FigureEight", "periodic_tasks",
-    "periodic_drift", "spine_coordinates", "spine_distance",
+    "periodic_drift", "spine_coordinates", "spine_distance", "spine_drift_bound", "posture_distance", "SPINE_LIMITS",
 ]
 
 REGIONS = ("lumbar", "thoracic", "cervical")
@@ -208,9 +209,20 @@ class _Builder:
         self.coords.append(Coordinate(name, kind, default, rng, False, clamped))
 
 
+SPINE_LIMITS = ("all", "first", "none")
+
+
 def _add_spine(b: _Builder, layout: SpineLayout, parent: str, offset: np.ndarray, coupled: bool,
-               joint_style: str, trunk_mass: float, neck_mass: float) -> str:
-    """Append vertebral bodies/joints; returns the name of the top vertebra body."""
+               joint_style: str, trunk_mass: float, neck_mass: float, limits: str | None = None) -> str:
+    """Append vertebral bodies/joints; returns the name of the top vertebra body.
+
+    ``limits`` selects the clamped vertebral coordinates: 'first' (the first swing and the first
+    twist joint of each region, as the seed does for the coupled spine; ball joints: the first
+    joint of each region), 'all' or 'none'.  Default: 'first' when coupled, else 'all'.
+    """
+    limits = limits or ("first" if coupled else "all")
+    if limits not in SPINE_LIMITS:
+        raise InputError("spine", f"spine limits must be one of {SPINE_LIMITS}, not {limits!r}")
     if joint_style not in ("swing_twist", "ball"):
         raise InputError("spine", f"joint_style must be 'swing_twist' or 'ball', not {joint_style!r}")
     if coupled and joint_style != "swing_twist":
@@ -229,8 +241,9 @@ def _add_spine(b: _Builder, layout: SpineLayout, parent: str, offset: np.ndarray
             first_twist = [j for j in reg.joints if j in reg.twist][:1]
             if joint_style == "ball":
                 names = [_coord(jn, c) for c in ("bending", "rotation", "extension")]   # rotation vector x, y, z
+                clamp = limits == "all" or (limits == "first" and jn == reg.joints[0])
                 for nm, comp in zip(names, ("bending", "rotation", "extension")):
-                    b.coordinate(nm, reg.ball_range(jn, comp))
+                    b.coordinate(nm, reg.ball_range(jn, comp), clamped=clamp)
                 b.body(seg, m, (0, L / 2, 0), L)
                 b.joints.append(ExpMapSpherical(jn, prev, seg, tuple(names), po, Transform()))
             else:
@@ -238,14 +251,14 @@ def _add_spine(b: _Builder, layout: SpineLayout, parent: str, offset: np.ndarray
                 child_swing = seg if not has_twist else f"{seg}_link"
                 if has_swing:
                     for comp in ("extension", "bending"):
-                        clamp = (not coupled) or jn in first_swing
+                        clamp = limits == "all" or (limits == "first" and jn in first_swing)
                         b.coordinate(_coord(jn, comp), reg.joint_range(jn, comp), clamped=clamp)
                     if has_twist:
                         b.body(child_swing)   # massless link between the swing and the twist joint
                     b.joints.append(SwingJoint(jn, prev, child_swing, (_coord(jn, "extension"), _coord(jn, "bending")),
                                                po, Transform(), axes=(_EXT_AXIS, _BEND_AXIS)))
                 if has_twist:
-                    clamp = (not coupled) or jn in first_twist
+                    clamp = limits == "all" or (limits == "first" and jn in first_twist)
                     b.coordinate(_coord(jn, "rotation"), reg.joint_range(jn, "rotation"), clamped=clamp)
                     parent_twist = child_swing if has_swing else prev
                     po_twist = Transform() if has_swing else po
@@ -282,7 +295,7 @@ def isolated_spine(kind: str = "full", coupled: bool = True, joint_style: str = 
 
 
 def mannequin(spine: str = "simplified", coupled: bool = True, joint_style: str | None = None,
-              limit_spine: bool = True) -> Model:
+              limit_spine: bool = True, spine_limits: str | None = None) -> Model:
     """Full-body mannequin: pelvis (free joint), legs, spine, arms, head; 1.75 m, 75 kg.
 
     Legs: hip (ZXY Cardan), knee (revolute, flexion positive), ankle
@@ -300,6 +313,12 @@ def mannequin(spine: str = "simplified", coupled: bool = True, joint_style: str 
     limit_spine : bool
         Enforce the vertebral ranges (False: a generic mannequin whose uncoupled
         spine joints are unbounded; ranges stay in the model, not clamped).
+    spine_limits : {'first', 'all', 'none'}, optional
+        Which vertebral coordinates are clamped to their ranges: the first joint of each
+        region only (the seed's coupled spine; default when coupled), every joint (default
+        when uncoupled) or none (same as ``limit_spine=False``).  ``mannequin(coupled=False,
+        joint_style='swing_twist', spine_limits='first')`` is the coupled spine without its
+        coupling constraints: same joints, same limit set.
     """
     layout = spine_layout(spine)
     style = joint_style or ("swing_twist" if coupled or spine == "full" else "ball")
@@ -332,8 +351,9 @@ def mannequin(spine: str = "simplified", coupled: bool = True, joint_style: str 
         b.markers.append(Marker(f"{s}_toe", f"foot_{s}", np.array([0.17, -0.07, 0.0])))
         # lateral forefoot (fifth metatarsal head): with heel and toe, the sole cannot roll
         b.markers.append(Marker(f"{s}_toe_lat", f"foot_{s}", np.array([0.13, -0.07, sign * 0.04])))
+    limits = spine_limits or ("none" if not limit_spine else ("first" if coupled else "all"))
     top = _add_spine(b, layout, "pelvis", np.array([-0.03, 0.05, 0.0]), coupled, style,
-                     trunk_mass=24.2, neck_mass=1.0)
+                     trunk_mass=24.2, neck_mass=1.0, limits=limits)
     thoracic_top = _segment(layout.regions[1].joints[-1])
     t_len = layout.regions[1].segment_length
     for s, sign in (("r", 1.0), ("l", -1.0)):
@@ -352,12 +372,9 @@ def mannequin(spine: str = "simplified", coupled: bool = True, joint_style: str 
     b.joints.append(weld("skullbase", top, "skull",
                          Transform(np.eye(3), np.array([0.0, layout.regions[-1].segment_length, 0.0]))))
     b.markers.append(Marker("head_top", "skull", np.array([0.0, 0.2, 0.0])))
-    if not limit_spine:
-        joints = set(layout.joints)
-        b.coords = [Coordinate(c.name, c.kind, c.default, c.range, c.locked, False)
-                    if c.name.split("_")[0] in joints else c for c in b.coords]
-    return _finish(b, layout, coupled, f"mannequin_{spine}_{'coupled' if coupled else style}"
-                   + ("" if limit_spine else "_unlimited"))
+    suffix = {"all": "", "first": "_first_limited", "none": "_unlimited"}[limits] if not coupled else (
+        "" if limits == "first" else f"_{limits}_limited")
+    return _finish(b, layout, coupled, f"mannequin_{spine}_{'coupled' if coupled else style}{suffix}")
 
 
 # ----------------------------------------------------------------------------- spine measures
@@ -424,6 +441,92 @@ def spine_distance(model: Model, q: np.ndarray, q_ref: np.ndarray) -> float:
     A, B = _relative_rotations(model, q), _relative_rotations(model, q_ref)
     angles = Rotation.from_matrix(A @ np.transpose(B, (0, 2, 1))).magnitude()
     return float(np.sqrt(np.sum(angles ** 2)))
+
+
+def posture_distance(model: Model, q: np.ndarray, q_ref: np.ndarray) -> float:
+    """Joint-space distance of two whole postures, independent of the joint parametrisation (rad).
+
+    ``sqrt(sum_b theta_b^2)`` over every body b with mass (massless links between a swing and
+    a twist joint are merged into the next body), theta_b the angle of ``R_b(q) R_b(q_ref)^T``
+    and R_b the rotation of b relative to its nearest massive ancestor (the ground for the
+    pelvis).  Translations (pelvis position) are not included.
+    """
+    parent_of = {j.child: j.parent for j in model.joints}
+    mass = {bd.name: bd.mass for bd in model.bodies}
+
+    def anchor(name):
+        while name != "ground" and mass[name] == 0.0:
+            name = parent_of[name]
+        return name
+    pairs = [(model.body_index(b.name), anchor(parent_of[b.name])) for b in model.bodies if b.mass > 0.0]
+    sa = forward_kinematics(model, np.asarray(q, float))
+    sb = forward_kinematics(model, np.asarray(q_ref, float))
+
+    def rel(st, i, par):
+        R = st.rotations[0, i]
+        return R if par == "ground" else st.rotations[0, model.body_index(par)].T @ R
+    A = np.array([rel(sa, i, par) for i, par in pairs])
+    B = np.array([rel(sb, i, par) for i, par in pairs])
+    angles = Rotation.from_matrix(A @ np.transpose(B, (0, 2, 1))).magnitude()
+    return float(np.sqrt(np.sum(angles ** 2)))
+
+
+def spine_drift_bound(model: Model) -> dict:
+    """A-priori upper bound of the spine drift allowed by the model's limits and couplings (rad).
+
+    Every spine coordinate i can only reach ``[min q_i, max q_i]`` over the polytope
+    ``{l_j <= q_j <= u_j for clamped j, C q = b, G q <= h}`` (spine coordinates and the
+    constraint rows supported on them only; one linear programme per bound, scipy ``linprog``),
+    of span ``s_i`` (inf when unbounded).  Since exp: R^3 -> SO(3) is 1-Lipschitz for the
+    geodesic angle and the metric is bi-invariant, a vertebra with swing s and twist t moves by
+    at most ``d_v = |s_swing| + s_twist`` (swing/twist joints) or ``|s_ball|`` (rotation-vector
+    ball joints), so for any two reachable postures
+
+        spine_distance(q, q')  <=  sqrt(sum_v d_v^2)       ('geodesic_rad')
+        |q_spine - q'_spine|    <=  sqrt(sum_i s_i^2)       ('coordinate_rad').
+
+    Returns dict with those two floats (inf when some spine coordinate is unbounded) and
+    'span_rad' (coordinate name -> s_i).
+    """
+    from scipy.optimize import linprog
+    names = model.coordinate_names
+    spine_names = spine_coordinates(model)
+    idx = np.array([names.index(n) for n in spine_names])
+    other = np.setdiff1d(np.arange(model.n_q), idx)
+    cons = ConstraintSet.from_model(model)
+    eq_rows = np.all(cons.C[:, other] == 0.0, axis=1) if len(cons.b) else np.zeros(0, bool)
+    in_rows = np.all(cons.G[:, other] == 0.0, axis=1) if len(cons.h) else np.zeros(0, bool)
+    A_eq, b_eq = cons.C[eq_rows][:, idx], cons.b[eq_rows]
+    A_ub, b_ub = cons.G[in_rows][:, idx], cons.h[in_rows]
+    bounds = [(model.lower[i], model.upper[i]) if model.coordinates[i].clamped else (None, None) for i in idx]
+    span = np.empty(len(idx))
+    for k in range(len(idx)):
+        ext = []
+        for sign in (1.0, -1.0):
+            c = np.zeros(len(idx))
+            c[k] = sign
+            r = linprog(c, A_ub=A_ub if len(b_ub) else None, b_ub=b_ub if len(b_ub) else None,
+                        A_eq=A_eq if len(b_eq) else None, b_eq=b_eq if len(b_eq) else None,
+                        bounds=bounds, method="highs")
+            if r.status == 3:          # unbounded
+                ext = None
+                break
+            if r.status != 0:
+                raise FitError(f"spine drift bound: linear programme failed ({r.message})")
+            ext.append(sign * r.fun)     # min q_k, then max q_k
+        span[k] = np.inf if ext is None else ext[1] - ext[0]
+    s_of = dict(zip(spine_names, span.tolist()))
+    d = []
+    for jn in _spine_layout_of(model).joints:
+        comps = {c: s_of[_coord(jn, c)] for c in ("extension", "bending", "rotation") if _coord(jn, c) in s_of}
+        if isinstance(model.joint(jn), SwingJoint):
+            d.append(np.hypot(comps["extension"], comps["bending"]) + comps.get("rotation", 0.0))
+        elif isinstance(model.joint(jn), ExpMapSpherical):
+            d.append(np.sqrt(sum(v * v for v in comps.values())))
+        else:
+            d.append(sum(comps.values()))
+    return {"geodesic_rad": float(np.sqrt(np.sum(np.square(d)))),
+            "coordinate_rad": float(np.sqrt(np.sum(span ** 2))), "span_rad": s_of}
 
 
 def swing_components(model: Model, q: np.ndarray) -> dict[str, np.ndarray]:
@@ -664,10 +767,12 @@ def periodic_drift(model: Model, cycles: int = 2000, steps_per_cycle: int = 24,
 
     One IK step per goal sample, `steps_per_cycle` samples per cycle.  Drift
     after c cycles is |q(c) - q(1)| over the rotational coordinates (rad) with
-    q(c) the posture at the end of cycle c; also reported over the spine
-    coordinates only.  ``settle`` steps first converge on the goal at phase 0.
+    q(c) the posture at the end of cycle c; also the geodesic distances of the
+    spine (`spine_distance`) and of the whole posture (`posture_distance`).
+    ``settle`` steps first converge on the goal at phase 0.
 
-    Returns dict with 'drift_rad', 'drift_spine_rad' (checkpoint -> rad),
+    Returns dict with 'drift_rad' (Euclidean over rotational coordinates), 'drift_spine_rad'
+    (`spine_distance`), 'drift_posture_rad' (`posture_distance`) (checkpoint -> rad),
     'postures' (checkpoint -> q), 'max_task_error' per level (m), 'max_equality_residual'
     (after every cycle), 'max_inequality_or_limit_excess' (after every step; <= 0 when never violated).
     """
@@ -680,7 +785,7 @@ def periodic_drift(model: Model, cycles: int = 2000, steps_per_cycle: int = 24,
     rot = model.rotational
     spine = np.isin(model.coordinate_names, spine_coordinates(model))
     ref = None
-    drift, drift_spine, postures = {}, {}, {}
+    drift, drift_spine, drift_posture, postures = {}, {}, {}, {}
     max_err = np.zeros(len(ik.levels))
     cons = ik.constraints
     max_res = 0.0
@@ -702,9 +807,11 @@ def periodic_drift(model: Model, cycles: int = 2000, steps_per_cycle: int = 24,
         if c in wanted:
             drift[c] = float(np.linalg.norm((q - ref)[rot]))
             drift_spine[c] = spine_distance(model, q, ref)
+            drift_posture[c] = posture_distance(model, q, ref)
             postures[c] = q.copy()
         if progress is not None:
             progress(c)
-    return {"drift_rad": drift, "drift_spine_rad": drift_spine, "postures": postures,
+    return {"drift_rad": drift, "drift_spine_rad": drift_spine, "drift_posture_rad": drift_posture,
+            "postures": postures,
             "max_task_error": max_err.tolist(), "max_equality_residual": max_res,
             "max_inequality_or_limit_excess": max_excess}

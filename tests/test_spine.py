@@ -9,8 +9,9 @@ from kinematics.errors import InputError
 from kinematics.joints import SwingJoint
 from kinematics.prioritized import ConstraintSet, LinearConstraint, RecruitingError
 from kinematics.spine import (KinematicTasks, balanced_posture_tasks, isolated_spine, isolated_spine_tasks,
-                              mannequin, periodic_drift, spine_distance, spine_layout, spine_solver,
-                              swing_components, torsion_direction_changes, vertebral_twist)
+                              mannequin, periodic_drift, posture_distance, spine_coordinates, spine_distance,
+                              spine_drift_bound, spine_layout, spine_solver, swing_components,
+                              torsion_direction_changes, vertebral_twist)
 
 HANIM = ([f"vl{i}" for i in range(5, 0, -1)] + [f"vt{i}" for i in range(12, 0, -1)]
          + [f"vc{i}" for i in range(7, 0, -1)])
@@ -152,14 +153,76 @@ def test_recruiting_rule_on_mannequin():
         spine_solver(m, bad)
 
 
-def test_periodic_drift_short_direction():
-    """Experiment 5.2.2, 40 cycles: the coupled spine drifts much less than an unbounded ball-joint spine."""
-    kw = dict(cycles=40, steps_per_cycle=12, checkpoints=(40,), settle=30)
-    c = periodic_drift(mannequin("simplified", True), **kw)
-    u = periodic_drift(mannequin("simplified", False, limit_spine=False), **kw)
+@pytest.fixture(scope="module")
+def drift_runs():
+    """Experiment 5.2.2, 40 cycles, for the coupled spine and two uncoupled baselines."""
+    kw = dict(cycles=40, steps_per_cycle=12, checkpoints=(1, 40), settle=30)
+    models = {"coupled": mannequin("simplified", True),
+              # like-for-like: the same joints and limit set (first joint of each region), no coupling
+              "same_limits": mannequin("simplified", False, joint_style="swing_twist", spine_limits="first"),
+              "unlimited": mannequin("simplified", False, limit_spine=False)}
+    return {k: (m, periodic_drift(m, **kw)) for k, m in models.items()}
+
+
+def test_like_for_like_baseline_has_the_same_joints_and_limits():
+    c = mannequin("simplified", True)
+    u = mannequin("simplified", False, joint_style="swing_twist", spine_limits="first")
+    assert c.coordinate_names == u.coordinate_names
+    assert [k.clamped for k in c.coordinates] == [k.clamped for k in u.coordinates]
+    assert len(ConstraintSet.from_model(u).b) == 0 and len(ConstraintSet.from_model(c).b) == 12
+    clamped = sorted(k.name for k in u.coordinates if k.clamped and k.name in spine_coordinates(u))
+    assert clamped == sorted(["vl5_extension", "vl5_bending", "vl3_rotation", "vt10_extension", "vt10_bending",
+                              "vt10_rotation", "vc7_extension", "vc7_bending", "vc7_rotation"])
+    ball = mannequin("simplified", False, spine_limits="first")
+    assert sorted({k.name.split("_")[0] for k in ball.coordinates
+                   if k.clamped and k.name in spine_coordinates(ball)}) == ["vc7", "vl5", "vt10"]
+    with pytest.raises(InputError, match="spine limits must be one of"):
+        mannequin("simplified", False, spine_limits="some")
+
+
+def test_periodic_drift_short_direction(drift_runs):
+    """Experiment 5.2.2, 40 cycles: the coupled spine drifts less than the uncoupled spine with the same
+    joints and limit set, and much less than an unbounded ball-joint spine."""
+    (mc, c), (ms, s), (mu, u) = (drift_runs[k] for k in ("coupled", "same_limits", "unlimited"))
     assert c["max_equality_residual"] < 1e-10
-    assert c["max_inequality_or_limit_excess"] <= 1e-12 and u["max_inequality_or_limit_excess"] <= 1e-12
+    for r in (c, s, u):
+        assert r["max_inequality_or_limit_excess"] <= 1e-12
+        assert r["drift_spine_rad"][1] == 0.0 and r["drift_posture_rad"][1] == 0.0
+    assert s["drift_spine_rad"][40] > 1.5 * c["drift_spine_rad"][40]
     assert u["drift_spine_rad"][40] > 2.0 * c["drift_spine_rad"][40]
+    # the spine is part of the posture: whole-posture geodesic drift >= spine drift
+    for r in (c, s, u):
+        assert r["drift_posture_rad"][40] >= r["drift_spine_rad"][40] - 1e-12
+
+
+def test_spine_drift_bound(drift_runs):
+    mc, c = drift_runs["coupled"]
+    b = spine_drift_bound(mc)
+    # the first joints span their ranges; the coupled ones follow by their ratio (1 in the simplified spine)
+    lo, hi = mc.coordinates[mc.coordinate_index("vl5_extension")].range
+    assert b["span_rad"]["vl5_extension"] == pytest.approx(hi - lo, abs=1e-9)
+    assert b["span_rad"]["vl1_extension"] == pytest.approx(hi - lo, abs=1e-9)
+    assert np.isfinite(b["geodesic_rad"]) and c["drift_spine_rad"][40] <= b["geodesic_rad"]
+    # every ball joint limited: both bounds equal the norm of the range spans
+    ball = mannequin("simplified", False)
+    spans = [np.diff(ball.coordinates[ball.coordinate_index(n)].range)[0] for n in spine_coordinates(ball)]
+    bb = spine_drift_bound(ball)
+    assert bb["coordinate_rad"] == pytest.approx(np.linalg.norm(spans), rel=1e-9)
+    assert bb["geodesic_rad"] == pytest.approx(np.linalg.norm(spans), rel=1e-9)
+    # same limit set without coupling: the unclamped vertebrae are unbounded
+    assert spine_drift_bound(drift_runs["same_limits"][0])["geodesic_rad"] == np.inf
+
+
+def test_posture_distance_is_geodesic():
+    m = mannequin("simplified", True)
+    q = m.default_q.copy()
+    q2 = q.copy()
+    names = m.coordinate_names
+    q2[names.index("vt10_rotation")] += 0.3
+    q2[names.index("elbow_flexion_r")] += 0.4
+    q2[names.index("pelvis_tx")] += 1.0            # translations are not part of the distance
+    assert posture_distance(m, q2, q) == pytest.approx(0.5, abs=1e-12)
+    assert spine_distance(m, q2, q) == pytest.approx(0.3, abs=1e-12)
 
 
 def test_spine_distance_is_geodesic(full_coupled):
