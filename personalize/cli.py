@@ -43,7 +43,8 @@ _register_commands()
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     try:
-        app(args=argv, standalone_mode=False)
+        # without standalone mode click returns (not raises) the code of typer.Exit
+        rc = app(args=argv, standalone_mode=False)
     except InputError as exc:
         typer.echo(f"error: {exc}", err=True)
         return 2
@@ -65,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         typer.echo(f"error: internal error ({type(exc).__name__}: {exc}); rerun with PERSONALIZE_DEBUG=1 for details", err=True)
         return 1
-    return 0
+    return rc if isinstance(rc, int) else 0
 
 
 def _console_main() -> None:  # pragma: no cover - thin wrapper

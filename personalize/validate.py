@@ -1,0 +1,485 @@
+"""Validation runs: the per-subject job on random phantom subjects, errors against truth.
+
+`run_validation` draws N phantom subjects (anatomy, imaging resolution,
+segmentation noise, soft-tissue artefact and marker noise, all from one seed),
+runs one dask task per subject through `personalize.cohort.run_batch` (the task
+first materialises its phantom subject folder, then runs the job on it), and
+collects every numeric entry of each subject's ``summary.json`` into
+``metrics.csv`` and a ``report.html`` with their distributions.
+
+Layout of ``OUT``::
+
+    manifest.csv              subject,path of the phantom subjects
+    subjects/<id>/            phantom.json (the draws) + the written phantom subject
+    results/<id>/             the job's outputs and summary.json
+    results/batch.csv         status per subject
+    metrics.csv               one row per subject: draws + flattened metrics
+    report.html               tables and distribution plots (self-contained)
+
+Metrics are whatever the job's summary holds, flattened with dots: for the full
+pipeline ``errors.hip_centre_mm.mri|motion|fused``, ``errors.knee_axis_deg.*``,
+``errors.ankle_axis_deg.*``, ``ik_rms_mm``, ``angle_rmse_deg.<angle>``; for the
+surface job ``surfaces.<bone>.mean_abs_distance_mm`` etc.
+"""
+from __future__ import annotations
+
+import csv
+import importlib.util
+import io
+import json
+import math
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from kinematics.atomic import inside, staged_dir, write_text
+from kinematics.errors import InputError
+
+from .cohort import DEFAULT_JOB, BatchResult, Subject, resolve_job, run_batch, write_manifest
+
+#: estimate sources, in display order
+SOURCES = ("mri", "motion", "fused")
+#: summary keys that are settings, not metrics
+NOT_METRICS = {"seed", "voxel_mm", "units", "version", "worker_pid", "n_frames", "frames"}
+#: summary roots plotted in the report, in this order (errors vs truth, IK residuals, angle errors, surfaces)
+FIGURE_ROOTS = ("errors", "ik_rms_mm", "angle_rmse_deg", "ik", "surfaces")
+#: summary roots kept out of the report's tables (estimated coordinates, not errors; still in metrics.csv)
+TABLE_ONLY_EXCLUDED = ("estimates", "truth_frame")
+#: marker of a fully written phantom subject (written after everything else)
+GENERATED = "generated.json"
+SPEC = "phantom.json"
+SURFACE_JOB = "personalize.validate:phantom_surfaces_job"
+
+#: default ranges of the random draws (uniform unless noted)
+DEFAULT_RANGES = {
+    "stature_m": (1.50, 1.95),
+    "femoral_anteversion_deg": (13.0, 7.0, -10.0, 40.0),   # normal: mean, sd, clip lo, hi
+    "neck_shaft_deg": (128.0, 5.0, 112.0, 145.0),
+    "tibial_torsion_deg": (25.0, 8.0, -5.0, 50.0),
+    "asymmetry": (-0.03, 0.03),
+    "variation": (0.02, 0.06),
+    "inplane_mm": (0.8, 1.5),       # MRI in-plane voxel size
+    "slice_mm": (1.0, 3.0),         # MRI slice thickness (random axis)
+    "segmentation_noise": (0.0, 0.5),
+    "sta_scale": (0.5, 1.5),        # soft-tissue artefact amplitude x the phantom's default
+    "marker_noise_mm": (0.2, 1.0),  # marker position noise sd
+}
+
+
+@dataclass(frozen=True)
+class PhantomSpec:
+    """Random draws of one validation subject (SI units except where named).
+
+    Attributes
+    ----------
+    subject : str
+    seed : int
+        Phantom seed (size variation, scanner placement, noise, motion).
+    params : dict
+        `phantoms.PhantomParams` fields (stature m, angles deg, ...).
+    voxel_mm : tuple of 3 floats
+        Label-volume voxel size, mm.
+    segmentation_noise : float
+        `phantoms.imaging` noise level 0..1.
+    sta_scale : float
+        Soft-tissue artefact amplitude factor.
+    marker_noise_m : float
+        Marker noise sd, metres.
+    bones : tuple of str or None
+        Bones written (None: all).
+    motion : bool
+        Whether motion trials are written.
+    """
+
+    subject: str
+    seed: int
+    params: dict
+    voxel_mm: tuple
+    segmentation_noise: float
+    sta_scale: float
+    marker_noise_m: float
+    bones: tuple | None = None
+    motion: bool = True
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["voxel_mm"] = list(self.voxel_mm)
+        d["bones"] = None if self.bones is None else list(self.bones)
+        d["units"] = {"voxel": "mm", "marker_noise": "m", "stature": "m", "angles": "deg"}
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict) -> "PhantomSpec":
+        return cls(subject=d["subject"], seed=int(d["seed"]), params=dict(d["params"]),
+                   voxel_mm=tuple(float(v) for v in d["voxel_mm"]), segmentation_noise=float(d["segmentation_noise"]),
+                   sta_scale=float(d["sta_scale"]), marker_noise_m=float(d["marker_noise_m"]),
+                   bones=None if d.get("bones") is None else tuple(d["bones"]), motion=bool(d.get("motion", True)))
+
+    def factors(self) -> dict:
+        """Flat table of the draws (for metrics.csv)."""
+        return {"phantom_seed": self.seed, **{k: v for k, v in self.params.items()},
+                "voxel_x_mm": self.voxel_mm[0], "voxel_y_mm": self.voxel_mm[1], "voxel_z_mm": self.voxel_mm[2],
+                "segmentation_noise": self.segmentation_noise, "sta_scale": self.sta_scale,
+                "marker_noise_mm": self.marker_noise_m * 1e3}
+
+
+def draw_subjects(n: int, seed: int, *, ranges: dict | None = None, bones: Sequence[str] | None = None,
+                  motion: bool = True) -> list[PhantomSpec]:
+    """Draw `n` phantom subjects from `seed` (reproducible; subject i depends only on seed and i).
+
+    Uniform draws in ``ranges[key] = (lo, hi)``; truncated normals for
+    ``(mean, sd, lo, hi)``.  The slice axis of the anisotropic voxel is random.
+    """
+    if not (1 <= n <= 10000):
+        raise InputError("--subjects", f"{n} is outside 1-10000")
+    if seed < 0:
+        raise InputError("--seed", f"{seed} must be >= 0")
+    r = dict(DEFAULT_RANGES, **(ranges or {}))
+    out = []
+    for i, ss in enumerate(np.random.SeedSequence([int(seed), 7919]).spawn(n)):
+        rng = np.random.default_rng(ss)
+
+        def draw(key):
+            v = r[key]
+            if len(v) == 4:
+                return float(np.clip(rng.normal(v[0], v[1]), v[2], v[3]))
+            return float(rng.uniform(v[0], v[1]))
+
+        params = {"stature": draw("stature_m"), "femoral_anteversion_deg": draw("femoral_anteversion_deg"),
+                  "neck_shaft_deg": draw("neck_shaft_deg"), "tibial_torsion_deg": draw("tibial_torsion_deg"),
+                  "asymmetry": draw("asymmetry"), "variation": draw("variation")}
+        inplane, thick = draw("inplane_mm"), draw("slice_mm")
+        voxel = [inplane] * 3
+        voxel[int(rng.integers(3))] = thick
+        out.append(PhantomSpec(subject=f"phantom_{i + 1:03d}", seed=int(ss.generate_state(1)[0] % (2**31 - 1)),
+                               params=params, voxel_mm=tuple(round(v, 4) for v in voxel),
+                               segmentation_noise=draw("segmentation_noise"), sta_scale=draw("sta_scale"),
+                               marker_noise_m=draw("marker_noise_mm") * 1e-3,
+                               bones=None if bones is None else tuple(bones), motion=motion))
+    return out
+
+
+def read_spec(subject_dir: str | os.PathLike) -> PhantomSpec:
+    p = Path(subject_dir) / SPEC
+    try:
+        return PhantomSpec.from_json(json.loads(p.read_text(encoding="utf-8")))
+    except FileNotFoundError:
+        raise InputError(p, "not found (not a validation phantom subject)") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(p, f"unreadable phantom spec ({type(exc).__name__}: {exc})") from None
+
+
+def ensure_phantom_subject(subject_dir: str | os.PathLike, spec: PhantomSpec | None = None,
+                           progress: Callable[[str], None] | None = None) -> Path:
+    """Write the phantom subject of `spec` into `subject_dir` unless already complete.
+
+    Writes ``labels.nii.gz``, ``label_map.json``, ``meshes/``, ``truth.json``
+    (incl. the motion truth entries) and, with motion, the C3D trials,
+    ``subject.json`` and ``truth/``; then ``generated.json`` as the completion marker.
+    """
+    from phantoms import make_phantom
+    from phantoms.imaging import write_phantom
+
+    d = Path(subject_dir)
+    spec = spec or read_spec(d)
+    if (d / GENERATED).is_file():
+        return d
+    ph = make_phantom(seed=spec.seed, **spec.params)
+    with staged_dir(d) as stage:
+        write_phantom(stage, ph, voxel=tuple(v * 1e-3 for v in spec.voxel_mm), noise=spec.segmentation_noise,
+                      seed=spec.seed, bones=None if spec.bones is None else list(spec.bones), progress=progress)
+        if spec.motion:
+            from phantoms.motion import write_trials
+
+            entries = write_trials(stage, ph, spec.seed, progress=progress, sta_scale=spec.sta_scale,
+                                   noise_sd=spec.marker_noise_m)
+            truth = json.loads((stage / "truth.json").read_text(encoding="utf-8"))
+            truth.update(entries)
+            write_text(stage / "truth.json", json.dumps(truth, indent=1) + "\n")
+    write_text(d / GENERATED, json.dumps({"spec": spec.to_json(),
+                                          "files": sorted(p.relative_to(d).as_posix() for p in d.rglob("*")
+                                                          if p.is_file())}, indent=1) + "\n")
+    return d
+
+
+def phantom_surfaces_job(subject_dir: Path, out: Path, progress: Callable[[str], None] | None = None) -> dict:
+    """Surface stage only: bone surfaces from the labels vs the exact phantom meshes.
+
+    The job validation runs use while the full pipeline (`personalize.pipeline.run_subject`)
+    is not available.  Writes ``surfaces.json`` (mm, %) into `out`.
+    """
+    import trimesh
+
+    from .demo import DEMO_SURFACE_BONES
+    from .surfaces import load_bones, surface_distance
+
+    d = Path(subject_dir)
+    lmap = json.loads((d / "label_map.json").read_text(encoding="utf-8"))
+    bones = [b for b in DEMO_SURFACE_BONES if b in lmap] or sorted(lmap)
+    surfaces = load_bones(d / "labels.nii.gz", d / "label_map.json", bones=bones, workers=1, eager_points=False)
+    rows = {}
+    for b in bones:
+        exact = trimesh.load(d / "meshes" / f"{b}.ply", force="mesh")
+        exact.apply_scale(1e-3)  # PLY in mm
+        dist = surface_distance(surfaces[b].mesh, exact, n=20000, seed=0)
+        rows[b] = {"mean_abs_distance_mm": dist["mean"] * 1e3, "max_distance_mm": dist["max"] * 1e3,
+                   "volume_error_pct": 100.0 * (surfaces[b].volume - abs(exact.volume)) / abs(exact.volume)}
+    summary = {"units": {"distance": "mm", "volume": "%"}, "job": "surfaces", "surfaces": rows}
+    write_text(Path(out) / "surfaces.json", json.dumps(summary, indent=1) + "\n")
+    return summary
+
+
+def validation_job(subject_dir: Path, out: Path, progress: Callable[[str], None] | None = None, *,
+                   job: str = DEFAULT_JOB) -> dict:
+    """Dask task body: materialise the phantom subject, then run `job` on it."""
+    ensure_phantom_subject(subject_dir, progress=progress)
+    return resolve_job(job)(Path(subject_dir), out, progress=progress)
+
+
+def default_validation_job() -> str:
+    """The full pipeline when it is installed, else the surface stage."""
+    if importlib.util.find_spec("personalize.pipeline") is not None:
+        return DEFAULT_JOB
+    return SURFACE_JOB
+
+
+# --------------------------------------------------------------------------- metrics
+def flatten_metrics(summary: dict, prefix: str = "") -> dict[str, float]:
+    """Numeric leaves of a summary as ``{"errors.hip_centre_mm.fused": 3.1, ...}`` (settings excluded)."""
+    out: dict[str, float] = {}
+    for k, v in summary.items():
+        if k in NOT_METRICS:
+            continue
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten_metrics(v, key + "."))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[key] = float(v)
+    return out
+
+
+def metric_groups(columns: Sequence[str]) -> dict[str, list[tuple[str, str]]]:
+    """Group metric columns for plotting: {group: [(label, column), ...]}.
+
+    ``a.b.<source>`` (source in mri/motion/fused) -> group ``a.b``, one box per source;
+    ``a.<item>.<quantity>`` -> group ``a.<quantity>``, one box per item (e.g. bone);
+    ``a.<item>`` -> group ``a``; a top-level scalar is its own group.
+    """
+    groups: dict[str, list[tuple[str, str]]] = {}
+    for c in columns:
+        parts = c.split(".")
+        if parts[-1] in SOURCES and len(parts) >= 2:
+            g, label = ".".join(parts[:-1]), parts[-1]
+        elif len(parts) >= 3:
+            g, label = ".".join(parts[:-2] + parts[-1:]), parts[-2]
+        elif len(parts) == 2:
+            g, label = parts[0], parts[1]
+        else:
+            g, label = c, c
+        groups.setdefault(g, []).append((label, c))
+    for g, items in groups.items():
+        if all(lbl in SOURCES for lbl, _ in items):
+            items.sort(key=lambda t: SOURCES.index(t[0]))
+    return groups
+
+
+def metric_statistics(rows: Sequence[dict], columns: Sequence[str]) -> list[dict]:
+    """n, mean, sd, median, 95th percentile and max of each metric column over subjects."""
+    stats = []
+    for c in columns:
+        v = np.array([r[c] for r in rows if isinstance(r.get(c), float) and math.isfinite(r[c])])
+        if v.size == 0:
+            continue
+        stats.append({"metric": c, "n": int(v.size), "mean": float(v.mean()),
+                      "sd": float(v.std(ddof=1)) if v.size > 1 else float("nan"),
+                      "median": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(v.max())})
+    return stats
+
+
+def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict]) -> Path:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(columns)
+    for r in rows:
+        w.writerow(["" if r.get(c) is None or (isinstance(r.get(c), float) and math.isnan(r[c])) else
+                    (f"{r[c]:.6g}" if isinstance(r[c], float) else r[c]) for c in columns])
+    return write_text(path, buf.getvalue())
+
+
+def read_metrics(path: str | os.PathLike) -> list[dict]:
+    """Rows of a metrics.csv; numeric cells as floats, empty cells as NaN."""
+    rows = []
+    with open(path, newline="", encoding="utf-8") as f:
+        for r in csv.DictReader(f):
+            row: dict[str, Any] = {}
+            for k, v in r.items():
+                if k in ("subject", "status", "error"):
+                    row[k] = v
+                else:
+                    try:
+                        row[k] = float(v) if v != "" else float("nan")
+                    except ValueError:
+                        row[k] = v
+            rows.append(row)
+    return rows
+
+
+# --------------------------------------------------------------------------- report
+def _box_figure(group: str, items: list[tuple[str, str]], rows: Sequence[dict]):
+    from .report import new_figure
+
+    fig = new_figure(max(3.5, 1.1 * len(items) + 1.5), 3.4)
+    ax = fig.add_subplot()
+    data, labels = [], []
+    for label, c in items:
+        v = np.array([r[c] for r in rows if isinstance(r.get(c), float) and math.isfinite(r[c])])
+        data.append(v)
+        labels.append(f"{label}\n(n={v.size})")
+    ax.boxplot(data, showfliers=False)
+    ax.set_xticks(range(1, len(labels) + 1), labels)
+    jit = np.random.default_rng(0)
+    for i, v in enumerate(data, start=1):
+        ax.plot(i + jit.uniform(-0.12, 0.12, v.size), v, "o", ms=3.5, alpha=0.6, color="tab:blue")
+    ax.set_ylabel(group.split(".")[-1])
+    ax.set_title(group, fontsize=10)
+    ax.grid(axis="y", alpha=0.3)
+    return fig
+
+
+def _hist_figure(column: str, rows: Sequence[dict]):
+    from .report import new_figure
+
+    fig = new_figure(4.0, 3.0)
+    ax = fig.add_subplot()
+    v = np.array([r[column] for r in rows if isinstance(r.get(column), float) and math.isfinite(r[column])])
+    ax.hist(v, bins=max(5, min(30, v.size // 2 or 1)), color="tab:blue", alpha=0.8)
+    ax.set_xlabel(column)
+    ax.set_ylabel("subjects")
+    ax.set_title(column, fontsize=10)
+    return fig
+
+
+def validation_report(path: str | os.PathLike, rows: Sequence[dict], metric_columns: Sequence[str],
+                      factor_columns: Sequence[str], *, seed: int, job: str, batch: BatchResult | None = None) -> Path:
+    """Write ``report.html``: cohort, metric statistics, distribution plots, failures, draws."""
+    from .report import Figure, Section, Table, render_report
+
+    ok = [r for r in rows if r["status"] in ("ok", "skipped")]
+    failed = [r for r in rows if r["status"] == "error"]
+    sections = [Section("Cohort", [
+        f"{len(rows)} phantom subjects drawn from seed {seed}: random anatomy, MRI voxel size, segmentation "
+        f"noise, soft-tissue artefact and marker noise; job {job}. {len(ok)} completed, {len(failed)} failed.",
+        "Errors are against the phantoms' exact truth; angles in degrees, distances in millimetres "
+        "(per metric name). metrics.csv holds one row per subject.",
+    ])]
+    # headline metrics get statistics and plots; the rest (per-side errors, registration, ...) a second table;
+    # estimates themselves (coordinates) are only in metrics.csv
+    def root_rank(c):
+        r = c.split(".")[0]
+        return FIGURE_ROOTS.index(r) if r in FIGURE_ROOTS else len(FIGURE_ROOTS)
+
+    primary = sorted((c for c in metric_columns if root_rank(c) < len(FIGURE_ROOTS)), key=root_rank)
+    if not primary:
+        primary = list(metric_columns)
+    headline = [c for c in primary if c.split(".")[0] != "ik"]  # per-trial IK residuals: plotted, tabled below
+    other = [c for c in metric_columns if c not in headline and c.split(".")[0] not in TABLE_ONLY_EXCLUDED]
+    stats = metric_statistics(ok, headline)
+    items: list[Any] = [Table.from_records(stats, caption="Per-metric statistics over the completed subjects")
+                        if stats else "No metric was produced."]
+    if "angle_rmse_deg" not in {c.split(".")[0] for c in metric_columns}:
+        items.append("The job's summary has no joint-angle RMSE against truth (angle_rmse_deg); none is reported.")
+    for g, members in metric_groups(primary).items():
+        if len(members) == 1 and members[0][1] == g:
+            items.append(Figure(_hist_figure(g, ok), caption=f"Distribution of {g} over subjects"))
+        else:
+            items.append(Figure(_box_figure(g, members, ok),
+                                caption=f"{g}: box = quartiles, whiskers = 1.5 IQR, dots = subjects"))
+    sections.append(Section("Metrics", items))
+    other_stats = metric_statistics(ok, other)
+    if other_stats:
+        sections.append(Section("Other summary quantities", [Table.from_records(
+            other_stats, caption="Per-trial IK residuals, per-side errors, registration and other summary entries")]))
+    if failed:
+        sections.append(Section("Failed subjects", [Table.from_records(
+            [{"subject": r["subject"], "error": r.get("error", "")} for r in failed])]))
+    sections.append(Section("Draws per subject", [Table.from_records(
+        [{c: r.get(c) for c in ["subject", "status", *factor_columns]} for r in rows],
+        caption="Random factors of each phantom subject (stature m, angles deg, voxel mm, marker noise mm)")]))
+    if batch is not None:
+        sections.append(Section("Run", [f"{batch.workers} dask workers; {batch.compute_seconds:.1f} s of compute wall time "
+                                         f"for {batch.counts['ok'] + batch.counts['error']} subjects run, "
+                                         f"{batch.counts['skipped']} already complete."]))
+    return render_report(path, "Validation on phantom subjects", sections, meta=f"personalize validate, seed {seed}")
+
+
+# --------------------------------------------------------------------------- driver
+@dataclass(frozen=True)
+class ValidationResult:
+    """Outcome of `run_validation`: the paths written and the per-subject rows."""
+
+    out: Path
+    metrics_csv: Path
+    report: Path
+    rows: tuple
+    metric_columns: tuple
+    batch: BatchResult
+
+
+def run_validation(n: int, seed: int, out: str | os.PathLike, *, scheduler=None, workers: int = 2,
+                   job: str | None = None, ranges: dict | None = None, bones: Sequence[str] | None = None,
+                   motion: bool = True, progress: bool = True, console=None) -> ValidationResult:
+    """Draw, write and run `n` phantom subjects; write ``metrics.csv`` and ``report.html`` into `out`.
+
+    Parameters
+    ----------
+    n, seed : number of subjects and master seed (same values -> same subjects)
+    out : output folder (re-running with the same n and seed resumes)
+    scheduler, workers : see `personalize.cohort.run_batch`
+    job : per-subject job (dotted path); default: the full pipeline if installed, else the surface stage
+    ranges : overrides of `DEFAULT_RANGES`
+    bones : write only these bones (default all)
+    motion : write the motion trials too
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "exists and is not a folder")
+    job = job or default_validation_job()
+    resolve_job(job)
+    specs = draw_subjects(n, seed, ranges=ranges, bones=bones, motion=motion)
+    subjects = []
+    for s in specs:
+        d = inside(out, f"subjects/{s.subject}")
+        spec_text = json.dumps(s.to_json(), indent=1) + "\n"
+        if (d / SPEC).is_file() and (d / SPEC).read_text(encoding="utf-8") != spec_text:
+            raise InputError(out, f"holds a validation run with other settings ({s.subject} differs); "
+                                  "use a new --out folder")
+        if not (d / SPEC).is_file():
+            write_text(d / SPEC, spec_text)
+        subjects.append(Subject(s.subject, d))
+    write_manifest(inside(out, "manifest.csv"), subjects)
+    batch = run_batch(subjects, inside(out, "results"), job=validation_job, job_kwargs={"job": job},
+                      scheduler=scheduler, workers=workers, progress=progress, console=console)
+    status = batch.by_subject()
+    rows, metric_cols = [], {}
+    factor_cols: dict[str, None] = {}
+    for s in specs:
+        r = status[s.subject]
+        # a subject completed by an earlier run counts as ok here (batch.csv says "skipped")
+        row: dict[str, Any] = {"subject": s.subject, "status": "ok" if r.status == "skipped" else r.status,
+                               "error": r.error}
+        f = s.factors()
+        factor_cols.update(dict.fromkeys(f))
+        row.update(f)
+        if r.status in ("ok", "skipped"):
+            m = flatten_metrics(json.loads((Path(r.output) / "summary.json").read_text(encoding="utf-8")))
+            metric_cols.update(dict.fromkeys(m))
+            row.update(m)
+        rows.append(row)
+    mcols = list(metric_cols)
+    csv_path = _write_csv(inside(out, "metrics.csv"), ["subject", "status", *factor_cols, *mcols, "error"], rows)
+    rep = validation_report(inside(out, "report.html"), rows, mcols, list(factor_cols), seed=seed, job=job,
+                            batch=batch)
+    return ValidationResult(out, csv_path, rep, tuple(rows), tuple(mcols), batch)
