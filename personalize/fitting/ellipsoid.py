@@ -18,18 +18,22 @@ labellings, ranked on a subsample with the cheaper radial distance
 :math:`\|p\|(1 - F(p)^{-1/2})` (as in `superquadric`); the winner is refined
 with the radial distance, then with the orthogonal distance, which -- unlike
 the radial one -- is not biased by noise on partial surfaces.
+
+`fit_ellipsoid_about_axis` is the same estimator with one semi-axis held
+along a known direction (7 parameters), for partial arcs whose free fit is
+ill-posed (femoral condyles about the flexion axis).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .base import DegenerateError, NotConvergedError, check_inputs
 from .robust import em_lm
-from .superquadric import _assemble, _fit_sq, _problem
+from .superquadric import _assemble, _fit_sq, _problem, _rodrigues
 
-__all__ = ["EllipsoidFit", "fit_ellipsoid", "algebraic_ellipsoid", "ellipsoid_distance"]
+__all__ = ["EllipsoidFit", "fit_ellipsoid", "fit_ellipsoid_about_axis", "algebraic_ellipsoid", "ellipsoid_distance"]
 
 
 @dataclass(frozen=True)
@@ -241,3 +245,98 @@ def fit_ellipsoid(points, normals=None, weights=None, *, robust: bool = True,
         raise NotConvergedError(f"ellipsoid: no convergence in {max_iter} iterations")
     ctr, R, la, _, _ = sol.params
     return _assemble(EllipsoidFit, sol, frame, ctr, R, la, None, n_shape=0)
+
+
+def fit_ellipsoid_about_axis(points, axis, *, centre0, radii0, rotation0=None, weights=None,
+                             robust: bool = True, max_iter: int = 300,
+                             require_convergence: bool = True) -> EllipsoidFit:
+    r"""Fit an ellipsoid one of whose semi-axes lies along a known direction.
+
+    Model: as `fit_ellipsoid` with :math:`R = R_0\,\mathrm{Rot}_z(\phi)`, the
+    third column of :math:`R_0` being the unit ``axis``: the ellipsoid may
+    turn only about ``axis``.  Parameters: centre (3), :math:`\phi` (1) and
+    log semi-axes (3) -- seven instead of nine.  Minimised quantity: the
+    robust-weighted squared orthogonal distance
+    :math:`\sum_i c_i w_i\, d_\perp(x_i; c, R, a)^2`, analytic Jacobian as
+    in `fit_ellipsoid` restricted to the rotation about the body z axis.
+
+    Fixing the axis removes the near-flat directions of a free ellipsoid on
+    a partial, noisy surface patch (e.g. a femoral condyle's posterior-distal
+    arc, whose medio-lateral axis is known from the bone).
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    axis : (3,) array_like
+        Direction of one semi-axis (normalised here).
+    centre0 : (3,) array_like
+        Starting centre (same unit as ``points``).
+    radii0 : (3,) array_like
+        Starting semi-axes along ``rotation0``'s columns (the third along ``axis``).
+    rotation0 : (3, 3) array_like, optional
+        Starting orientation; its third column is replaced by ``axis`` and the
+        first two are re-orthonormalised.  Default: any frame with z = ``axis``.
+    weights : (N,) array_like, optional
+    robust, max_iter, require_convergence
+        As in `fit_ellipsoid`.
+
+    Returns
+    -------
+    EllipsoidFit
+        Radii in decreasing order (the covariance's rotation block has rank 1,
+        about ``axis``).
+    """
+    from .base import orthonormal_basis
+
+    X, _, c, frame = check_inputs(points, None, weights, n_params=7, model="ellipsoid")
+    z = np.asarray(axis, float).reshape(3)
+    nz = np.linalg.norm(z)
+    if not (np.isfinite(nz) and nz > 0):
+        raise DegenerateError("ellipsoid: the axis must be a finite non-zero vector")
+    z = z / nz
+    if rotation0 is None:
+        u, v = orthonormal_basis(z)
+    else:
+        R0 = np.asarray(rotation0, float).reshape(3, 3)
+        u = R0[:, 0] - (R0[:, 0] @ z) * z
+        if np.linalg.norm(u) < 1e-9:
+            u, v = orthonormal_basis(z)
+        else:
+            u = u / np.linalg.norm(u)
+            v = np.cross(z, u)
+    R = np.column_stack([u, v, z])
+    a0 = np.asarray(radii0, float).reshape(3)
+    if not np.all(np.isfinite(a0) & (a0 > 0)):
+        raise DegenerateError("ellipsoid: starting semi-axes must be positive")
+    x0 = (frame.forward(np.asarray(centre0, float).reshape(3)), R, np.log(a0 / frame.scale), 0.0, 0.0)
+
+    def fun(x, jac):
+        ctr, Rx, log_a, _, _ = x
+        Pb = (X - ctr) @ Rx
+        d, parts = ellipsoid_distance(Pb, np.exp(log_a), jac)
+        if not jac:
+            return d, None
+        n, d_la = parts
+        J = np.empty((X.shape[0], 7))
+        J[:, 0:3] = -n                                # body-frame translation
+        J[:, 3] = n[:, 0] * Pb[:, 1] - n[:, 1] * Pb[:, 0]   # rotation about body z: (n x p)_z
+        J[:, 4:7] = d_la
+        return d, J
+
+    def retract(x, dl):
+        ctr, Rx, log_a, _, _ = x
+        return (ctr + Rx @ dl[0:3], Rx @ _rodrigues(np.array([0.0, 0.0, dl[3]])),
+                log_a + np.clip(dl[4:7], -1.0, 1.0), 0.0, 0.0)
+
+    uo = 1.0 / (2.0 * np.sqrt(np.max(np.sum(X * X, axis=1))))
+    sol = em_lm(fun, x0, retract, prior_weights=c, robust=robust, max_iter=max_iter,
+                outlier_density=uo, model="ellipsoid")
+    if require_convergence and not sol.converged:
+        raise NotConvergedError(f"ellipsoid: no convergence in {max_iter} iterations")
+    # pad the 7-parameter covariance to (translation, rotation vector, log a)
+    C7 = sol.covariance
+    C9 = np.zeros((9, 9))
+    keep = np.r_[0, 1, 2, 5, 6, 7, 8]
+    C9[np.ix_(keep, keep)] = C7
+    ctr, Rf, la, _, _ = sol.params
+    return _assemble(EllipsoidFit, replace(sol, covariance=C9), frame, ctr, Rf, la, None, n_shape=0)

@@ -31,6 +31,11 @@ __all__ = ["detect_femur", "head_coverage", "find_head"]
 
 HEAD_RADII = np.arange(0.012, 0.0331, 0.0015)      # adult 20-28 mm, juvenile from ~12 mm
 CONDYLE_RADII = np.arange(0.012, 0.0361, 0.0015)
+#: condyle-centre fits use the posterior-distal arc up to 45 degrees anterior
+#: of the distal direction (normal . anterior < cos 45): the centre of an oval
+#: arc is ill-posed when the arc stops at the distal point, and the trochlea
+#: begins farther forward (its stray points are down-weighted by the robust fit)
+ANT_MAX = float(np.cos(np.radians(45.0)))
 
 
 def _sphere_landmark(fit) -> Landmark:
@@ -179,7 +184,7 @@ def detect_femur(surface: Surface, name: str = "femur_r") -> BoneLandmarks:
         # femoral head radius sets the scale (juvenile and adult bones alike)
         scale = float(head.radius) if head is not None else 0.023
         cond_region = hp < bot + 1.8 * scale
-        _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise, has_head=head is not None)
+        _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise)
 
     # ---- neck axis and diameter --------------------------------------------------------
     if head is not None:
@@ -285,16 +290,23 @@ def _sphere_json(fit, n: int) -> dict:
             "rms": float(fit.rms), "n_points": n, "converged": bool(fit.converged)}
 
 
-def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise, has_head=True):
-    """Medial and lateral condyle ellipsoids, the knee axis through their centres, epicondyles.
+def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise):
+    """Medial and lateral condyle centres, the knee axis, epicondyles.
 
     The posterior and distal condylar surfaces (normals not facing anteriorly,
     i.e. not the trochlea) of the distal block are split at the notch into a
-    medial and a lateral half; each half gets a robust ellipsoid fit, refitted
-    once on the points within a band of the first fit.  The ellipsoid's two
-    largest semi-axes are the condyle's sagittal ellipse (a >= b).
+    medial and a lateral half.  Each half gets a robust sphere; the line
+    through the two sphere centres is the flexion (knee) axis -- both spheres
+    are biased alike on oval condyles, so the direction is robust.  Each
+    condyle centre is then the centre of an ellipsoid with one semi-axis
+    along that axis (`fit_ellipsoid_about_axis`, 7 parameters), fitted to the
+    posterior-distal arc extended to 45 degrees anterior of the distal
+    direction and refitted on the points within 3 rms; if either ellipsoid is
+    implausible both condyles fall back to their spheres (noted).  The two
+    semi-axes across the flexion axis are the condyle's sagittal ellipse
+    (``*_condyle_a >= *_condyle_b``).
     """
-    from personalize.fitting import fit_ellipsoid
+    from personalize.fitting import fit_sphere
 
     V, Nrm = surface.vertices, surface.normals
     # not the trochlea (anterior-facing) nor the epicondylar side walls
@@ -317,7 +329,6 @@ def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise, ha
         c1, c2 = n1, n2
     split = 0.5 * (c1 + c2)
     sep = c2 - c1
-    fits = {}
     # each condyle's window is centred on its lowest (most distal) point: the
     # 2-means centres are pulled towards the notch roof
     low = {}
@@ -325,7 +336,7 @@ def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise, ha
     for label, side_mask in (("medial", facing & (m > split)), ("lateral", facing & (m <= split))):
         idx = np.flatnonzero(side_mask)
         low[label] = float(m[idx[np.argmin(hgt[idx])]]) if len(idx) else (c2 if label == "medial" else c1)
-    models = {}
+    sph, sels = {}, {}
     for label, centre_ml in (("medial", low["medial"]), ("lateral", low["lateral"])):
         # a window of +-30 % of the condyle separation around each condyle's
         # lowest point keeps its own posterior-distal surface, not the notch
@@ -333,50 +344,47 @@ def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise, ha
         half = np.abs(m - centre_ml) < 0.3 * sep
         sel = np.flatnonzero(facing & half)
         sel = sel[:: max(1, len(sel) // 3000)]
-        # surface noise: the head fit's rms; without a head (truncated femur)
-        # the condyle's own first ellipsoid fit sets it (None)
-        models[label] = (_condyle_models(V, Nrm, surface.areas, sel, noise if has_head else None), len(sel))
-    # one model for both condyles: ellipsoids only where both are clearly better
-    # and agree with the spheres (an ellipsoid over a noisy partial arc can
-    # drift along a family of near-equivalent shapes)
-    use_ell = all(mod[0]["ellipsoid_ok"] for mod in models.values())
-    if use_ell and all(mod[0]["sphere"] is not None for mod in models.values()):
-        s_mid = 0.5 * sum(np.asarray(mod[0]["sphere"].centre) for mod in models.values())
-        e_mid = 0.5 * sum(np.asarray(mod[0]["ellipsoid"].centre) for mod in models.values())
-        r_mean = 0.5 * sum(float(mod[0]["sphere"].radius) for mod in models.values())
-        if np.linalg.norm(e_mid - s_mid) > 0.35 * r_mean:
-            use_ell = False
-    for label, (mod, n_sel) in models.items():
-        f = mod["ellipsoid"] if use_ell else mod["sphere"]
-        if f is None:
+        try:
+            sph[label] = fit_sphere(V[sel], normals=Nrm[sel])
+        except FitError:
             res.flag(FLAG_LOW_CONFIDENCE, f"{label} condyle could not be fitted")
             return
+        wide = np.flatnonzero(cond_region & half & ((Nrm @ ant) < ANT_MAX) & (np.abs(Nrm @ med) < 0.5))
+        sels[label] = wide[:: max(1, len(wide) // 3000)]
+    # flexion axis direction: line through the condyle SPHERE centres.  Both
+    # condyles bias their sphere centres alike, so the direction is robust
+    # where free ellipsoid centres (over partial, noisy arcs) are not.
+    ms = Landmark(np.asarray(sph["medial"].centre, float), sphere_centre_cov(sph["medial"]))
+    ls_ = Landmark(np.asarray(sph["lateral"].centre, float), sphere_centre_cov(sph["lateral"]))
+    ax = line_through(ms, ls_) if res.side == "r" else line_through(ls_, ms)
+    # condyle centres: ellipsoids with one semi-axis along the flexion axis
+    # (7 parameters instead of 9: the free ellipsoid drifts along near-flat
+    # directions on a noisy partial arc, the sphere is biased on an oval one)
+    fits = {}
+    for label in ("medial", "lateral"):
+        fits[label] = _condyle_about_axis(V, surface.areas, sels[label], sph[label], ax.direction, ant)
+    use_ell = all(f is not None for f in fits.values())
+    if not use_ell:
+        fits = sph
+    for label, f in fits.items():
         cov = np.asarray(f.covariance)[:3, :3] + 1e-12 * np.eye(3)
         res.landmarks[f"{label}_condyle_centre"] = Landmark(np.asarray(f.centre, float), cov)
         if use_ell:
-            radii = np.sort(np.asarray(f.radii, float))[::-1]
+            # sagittal semi-axes: the two perpendicular to the flexion axis
+            Rf, rr = np.asarray(f.rotation), np.asarray(f.radii, float)
+            k_ax = int(np.argmax(np.abs(Rf.T @ ax.direction)))
+            radii = np.sort(np.delete(rr, k_ax))[::-1]
             res.scalars[f"{label}_condyle_a"] = float(radii[0])
             res.scalars[f"{label}_condyle_b"] = float(radii[1])
             res.fits[f"{label}_condyle"] = {"type": "ellipsoid", "centre": np.asarray(f.centre).tolist(),
-                                            "radii": np.asarray(f.radii).tolist(),
-                                            "rotation": np.asarray(f.rotation).tolist(), "rms": float(f.rms),
-                                            "converged": bool(f.converged)}
+                                            "radii": rr.tolist(), "rotation": Rf.tolist(), "rms": float(f.rms),
+                                            "converged": bool(f.converged), "axis_constrained": True}
         else:
             res.scalars[f"{label}_condyle_a"] = float(f.radius)
             res.scalars[f"{label}_condyle_b"] = float(f.radius)
-            res.fits[f"{label}_condyle"] = _sphere_json(f, n_sel)
-    res.notes.append(f"condyles modelled as {'ellipsoids' if use_ell else 'spheres'}")
+            res.fits[f"{label}_condyle"] = _sphere_json(f, len(sels[label]))
+    res.notes.append(f"condyles modelled as {'axis-constrained ellipsoids' if use_ell else 'spheres'}")
     m_lm, l_lm = res.landmarks["medial_condyle_centre"], res.landmarks["lateral_condyle_centre"]
-    # flexion axis direction: line through the condyle SPHERE centres.  Both
-    # condyles bias their sphere centres alike, so the direction is robust
-    # where ellipsoid centres (over partial, noisy arcs) are not.
-    sph = [mod[0]["sphere"] for mod in (models["medial"], models["lateral"])]
-    if all(f is not None for f in sph):
-        ms = Landmark(np.asarray(sph[0].centre, float), sphere_centre_cov(sph[0]))
-        lsph = Landmark(np.asarray(sph[1].centre, float), sphere_centre_cov(sph[1]))
-        ax = line_through(ms, lsph) if res.side == "r" else line_through(lsph, ms)
-    else:
-        ax = line_through(m_lm, l_lm) if res.side == "r" else line_through(l_lm, m_lm)
     mid_c = 0.5 * (m_lm.position + l_lm.position)
     ax = Axis(point=mid_c, direction=ax.direction, sd_deg=ax.sd_deg)
     res.axes["knee_axis"] = ax
@@ -393,73 +401,51 @@ def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise, ha
     res.landmarks[f"{P}MFC"] = Landmark(V[k_med].copy(), _iso(noise, 0.002))
 
 
-def _condyle_models(V, Nrm, A, sel, noise: float | None) -> dict:
-    """Sphere and ellipsoid fitted to one condyle's posterior-distal surface, scored by consensus.
+def _condyle_about_axis(V, A, sel, sphere, axis, ant):
+    """Condyle ellipsoid with one semi-axis along the flexion axis, or None if implausible.
 
-    Candidates: a robust sphere; a robust ellipsoid, then ellipsoids refitted
-    on the 60 % of points closest to the previous one (up to four times, for
-    when clutter captured the first start).  Each candidate is scored by its
-    consensus: the surface area of the window within ``tau = max(0.5 mm, 2.5
-    noise)`` of it (``noise`` = rms of the femoral-head fit, the cleanest
-    sphere of the bone).  Over-trimmed or implausible (semi-axes outside
-    4-40 mm) ellipsoids lose.  ``ellipsoid_ok`` says whether the best
-    ellipsoid explains clearly more surface (x1.15) than the sphere.
+    Starts from the condyle's sphere (sagittal semi-axes = its radius, the
+    medio-lateral one 0.6 of it); refitted once on the points within 3 rms of
+    the first fit.  Rejected when not converged, when a semi-axis leaves
+    4-40 mm or when the centre moves more than half the sphere radius from
+    the sphere centre.
     """
-    from personalize.fitting import fit_ellipsoid, fit_sphere
+    from personalize.fitting import FittingError
+    from personalize.fitting.ellipsoid import fit_ellipsoid_about_axis
 
-    P = V[sel]
-    w = A[sel]
-    if noise is None:
-        try:
-            f0 = fit_ellipsoid(P)
-            noise = float(np.clip(f0.rms, 5e-5, 5e-4))
-        except FitError:
-            noise = 5e-4
-    tau = max(0.0005, 2.5 * noise)
-
-    def consensus(f) -> float:
-        return float(w[np.abs(f.residuals(P)) < tau].sum())
-
-    try:
-        sf = fit_sphere(P, normals=Nrm[sel])
-        s_score = consensus(sf)
-    except FitError:
-        sf, s_score = None, 0.0
-
-    def plausible(f):
-        r = np.sort(np.asarray(f.radii))
-        return bool(np.all(np.isfinite(r)) and r[0] > 0.004 and r[2] < 0.04)
-
-    def one(idx):
-        try:
-            return fit_ellipsoid(V[idx])
-        except FitError:
-            return fit_ellipsoid(V[idx], require_convergence=False)
-
-    best_e, e_score = None, 0.0
+    r = float(sphere.radius)
+    c0 = np.asarray(sphere.centre, float)
+    R0 = np.column_stack([ant, np.cross(axis, ant), axis])
     idx = sel
-    try:
-        f = one(idx)
-        for it in range(5):
-            if plausible(f):
-                sc = consensus(f)
-                if it == 0 and f.rms < max(0.0006, 1.5 * noise):
-                    best_e, e_score = f, sc          # the robust fit did not need help
-                    break
-                if sc > e_score:
-                    best_e, e_score = f, sc
-            if it == 4:
-                break
-            r = np.abs(f.residuals(V[idx]))
-            idx = idx[r <= np.quantile(r, 0.6)]
-            if len(idx) < 40:
-                break
-            f = one(idx)
-    except FitError:
-        pass
-    ok = best_e is not None and e_score > 1.15 * s_score
-    return {"sphere": sf, "ellipsoid": best_e, "ellipsoid_ok": bool(ok),
-            "sphere_score": s_score, "ellipsoid_score": e_score}
+    f = None
+    for _ in range(2):
+        try:
+            Rs, a0 = (R0, [r, r, 0.6 * r]) if f is None else _axis_last(f, axis)
+            g = fit_ellipsoid_about_axis(V[idx], axis, centre0=c0 if f is None else f.centre,
+                                         radii0=a0, rotation0=Rs, weights=A[idx])
+        except FittingError:
+            break
+        f = g
+        res_ = np.abs(f.residuals(V[sel]))
+        nxt = sel[res_ < max(3.0 * float(f.rms), 5e-4)]
+        if len(nxt) < 40:
+            break
+        idx = nxt
+    if f is None:
+        return None
+    rr = np.asarray(f.radii)
+    if not (np.all(np.isfinite(rr)) and rr.min() > 0.004 and rr.max() < 0.04):
+        return None
+    if np.linalg.norm(np.asarray(f.centre) - c0) > 0.5 * r:
+        return None
+    return f
+
+
+def _axis_last(f, axis):
+    """Rotation and semi-axes of fit ``f`` with the semi-axis along ``axis`` last."""
+    k = int(np.argmax(np.abs(np.asarray(f.rotation).T @ axis)))
+    order = [j for j in range(3) if j != k] + [k]
+    return np.asarray(f.rotation)[:, order], np.asarray(f.radii)[order]
 
 
 def _neck(surface, res, head, sp, sd, prox_region):
