@@ -19,7 +19,9 @@ of a convex part (sphere pole, ellipsoid vertex) lying farther than the blend
 width from every other part, so the smooth union leaves it on the surface
 (the tests check ``sdf == 0`` there).  Joint surfaces are congruent in the
 standing pose: acetabulum centre == femoral head centre, femur and tibia share
-the knee axis, tibial plafond and talar dome share the ankle axis.  Bones that
+the knee axis, tibial plafond and talar dome share the ankle axis.  The talus carries
+the subtalar axis of Parr et al. (2012): the line through the centres of its
+convex talar head sphere and of its concave posterior-facet sphere.  Bones that
 would interpenetrate are carved by their dilated neighbour (cartilage gap).
 """
 from __future__ import annotations
@@ -32,7 +34,7 @@ import numpy as np
 from personalize.bones import BONE_NAMES, mirror_name
 
 from .sdf import (
-    SDF, CappedCylinder, Difference, Ellipsoid, Offset, RoundCone, Sphere,
+    SDF, CappedCylinder, Difference, Ellipsoid, Intersection, Offset, RoundCone, Sphere,
     SuperEllipsoid, Transformed, Union, WaistedNeck, rotation_from_axes,
 )
 
@@ -67,6 +69,18 @@ def _rot(axis, angle) -> np.ndarray:
     k = _unit(axis)
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _cone(axis, half_angle_deg: float, n: int = 8) -> np.ndarray:
+    """Unit vectors: `axis` and two rings of `n` at half and full `half_angle_deg` around it, (2n+1, 3)."""
+    a = _unit(axis)
+    e1 = _unit(np.cross(a, X if abs(a[0]) < 0.9 else Y))
+    e2 = np.cross(a, e1)
+    out = [a]
+    for t in np.deg2rad([0.5 * half_angle_deg, half_angle_deg]):
+        for b in np.linspace(0, 2 * np.pi, n, endpoint=False):
+            out.append(np.cos(t) * a + np.sin(t) * (np.cos(b) * e1 + np.sin(b) * e2))
+    return np.array(out)
 
 
 def _E(c, r, R=None) -> Ellipsoid:
@@ -395,23 +409,43 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     Xf = np.array([np.cos(phi), 0.0, np.sin(phi)])
     Rf = np.column_stack([Xf, Y, np.cross(Xf, Y)])
     Rta = Ra.T @ Rf                                   # foot axes in the ankle (talus) frame
-    talus_raw = Union((
+    # Subtalar geometry (Parr et al. 2012 definition, exact by construction): the
+    # axis runs through the centre of the convex talar head sphere (talonavicular
+    # surface) and the centre of the CONCAVE posterior talocalcaneal facet sphere
+    # carved into the body's underside; direction 42 deg elevation, 23 deg medial
+    # deviation in foot axes (Inman).
+    el, dev = np.deg2rad(42.0), np.deg2rad(23.0)
+    st_dir_f = np.array([np.cos(el) * np.cos(dev), np.sin(el), -np.cos(el) * np.sin(dev)])
+    st_dir_t = Rta @ st_dir_f
+    r_head = 0.0115 * d["talus"]
+    head_c = Rta @ (np.array([0.028, -0.013, -0.008]) * d["talus"])        # talus frame
+    r_facet = 0.022 * d["talus"]
+    facet_c = head_c - 0.040 * d["talus"] * st_dir_t
+    talus_body = Union((
         CappedCylinder(np.zeros(3), np.eye(3), R_d, h_d, 0.002 * s),
         _E([-0.003 * s, -0.014 * s, 0.0], np.array([0.023, 0.016, h_d / s]) * s),
-        # talar head and neck point along the foot, anteromedially (defined in foot axes)
-        _E(Rta @ (np.array([0.027, -0.013, -0.008]) * d["talus"]), np.array([0.015, 0.012, 0.0135]) * d["talus"], Rta),
+        # talar neck: from the body towards the head, which points along the foot, anteromedially
+        _RC(Rta @ (np.array([0.004, -0.014, -0.002]) * d["talus"]), head_c - 0.008 * d["talus"] * _unit(Rta @ X),
+            0.0095 * d["talus"], 0.0094 * d["talus"]),
+        _S(head_c, r_head),
         _E([-0.018 * s, -0.016 * s, 0.004 * s], np.array([0.008, 0.007, 0.007]) * s),
     ), k=0.004 * s)
+    talus_raw = Difference(talus_body, _S(facet_c, r_facet), k=0.0015 * s)
     talus_from_tibia = np.linalg.inv(body_from_talus) @ body_from_tibia
     # only the distal tibia and the malleoli can touch the talus (cheap to evaluate)
     distal = Union((Difference(Union((distal_block, med_mall), k=0.004 * s), plafond_cut, k=kc), lat_mall), k=0.0)
     neighbours = Transformed(distal, talus_from_tibia)
     talus_sdf = Difference(talus_raw, Offset(neighbours, 0.0010 * s), k=0.0012 * s)
     ta = _Bone(talus_sdf, body_from_talus)
-    ta.landmarks = {"talar_dome_centre": ankle_body.copy()}
-    ta.scalars = {"talar_dome_radius": R_d}
+    ta.landmarks = {"talar_dome_centre": ankle_body.copy(), "talar_head_centre": _apply(body_from_talus, head_c),
+                    "posterior_facet_centre": _apply(body_from_talus, facet_c)}
+    ta.scalars = {"talar_dome_radius": R_d, "talar_head_radius": r_head, "posterior_facet_radius": r_facet}
     ta.checks = {"dome_arc": np.array([_apply(body_from_talus, [R_d * np.sin(a), R_d * np.cos(a), z])
-                                       for a in np.deg2rad([-50, -25, 0, 25, 50]) for z in (-0.7 * h_d, 0, 0.7 * h_d)])}
+                                       for a in np.deg2rad([-50, -25, 0, 25, 50]) for z in (-0.7 * h_d, 0, 0.7 * h_d)]),
+                 # the talar head around the neck direction, the facet around its middle (both exact spheres)
+                 "talar_head": _apply(body_from_talus, head_c + r_head * _cone(Rta @ X, 30.0)),
+                 "posterior_facet": _apply(body_from_talus, facet_c + r_facet * _cone(
+                     _unit(np.array([-0.003 * s, -0.014 * s, 0.0]) - facet_c), 12.0))}
     bones["talus"] = ta
 
     # ---------------------------------------------------------------- foot frame (calcn local)
@@ -448,6 +482,12 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
         # the shaft ends above and behind the head centre so the head's plantar pole stays exact
         calcn_parts += [_S(hc, hr), _RC(b, hc + hr * np.array([-0.3, 0.25, 0.0]), ra * s, rb * s)]
     foot_from_talus = np.linalg.inv(body_from_foot) @ body_from_talus
+    # convex posterior facet of the calcaneus, concentric with the talar one (trimmed below by
+    # the dilated talus, so the cartilage gap is >= 1.2 mm)
+    fc_f = _apply(foot_from_talus, facet_c)
+    up_f = foot_from_talus[:3, :3] @ Y
+    calcn_parts.append(Intersection((_S(fc_f, r_facet - 0.0008 * s),
+                                     _E(fc_f + (r_facet - 0.007 * s) * up_f, np.array([0.014, 0.009, 0.011]) * s))))
     calcn_sdf = Difference(Union(tuple(calcn_parts), k=0.003 * s), Offset(Transformed(talus_raw, foot_from_talus), 0.0012 * s), k=kc)
     cb = _Bone(calcn_sdf, body_from_foot)
     (m1, r1), (m5, r5) = heads[0], heads[4]
@@ -458,11 +498,9 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     cb.axes = {"hindfoot_axis": (F(cb_c), Rf @ cb_R[:, 0]),
                "forefoot_axis": (F(bases[1]), Rf @ _unit(heads[1][0] - bases[1]))}
     bones["calcn"] = cb
-    # subtalar axis: 42 deg elevation, 23 deg medial deviation (Inman)
-    el, dev = np.deg2rad(42.0), np.deg2rad(23.0)
-    st_dir_f = np.array([np.cos(el) * np.cos(dev), np.sin(el), -np.cos(el) * np.sin(dev)])
-    st_pt_f = np.array([0.0, h_a - 0.033 * s, 0.004 * fw])
-    ta.axes = {"ankle_axis": (ankle_body.copy(), Za), "subtalar_axis": (F(st_pt_f), Rf @ st_dir_f)}
+    # subtalar axis: through the posterior facet and talar head centres, anterior
+    ta.axes = {"ankle_axis": (ankle_body.copy(), Za),
+               "subtalar_axis": (_apply(body_from_talus, facet_c), body_from_talus[:3, :3] @ st_dir_t)}
 
     # ---------------------------------------------------------------- toes (foot axes, origin mtp midpoint)
     mtp_mid = (m1 + m5) / 2

@@ -296,3 +296,55 @@ def test_posed_bones_carry_their_truth():
     R1 = np.array(t1["joints"]["joints"]["ankle_r"]["rotation"])
     np.testing.assert_allclose(R1, G[:3, :3] @ R0, atol=1e-12)
     np.testing.assert_allclose(t1["joints"]["joints"]["knee_r"]["rotation"], t0["joints"]["joints"]["knee_r"]["rotation"])
+
+
+# --------------------------------------------------------------------------- subtalar geometry (issue F3)
+@pytest.mark.parametrize("side", ["r", "l"])
+def test_subtalar_axis_is_carried_by_the_talar_surfaces(ph, truth, side):
+    """Parr et al. 2012: the axis joins the talar head and posterior-facet sphere centres."""
+    b = f"talus_{side}"
+    hc, fc = _lm(truth, b, "talar_head_centre"), _lm(truth, b, "posterior_facet_centre")
+    sc = truth["landmarks"]["bones"][b]["scalars"]
+    rh, rf = sc["talar_head_radius"]["value"], sc["posterior_facet_radius"]["value"]
+    p, d = _axis(truth, b, "subtalar_axis")
+    # both centres on the truth axis, which points from the facet to the head (anteriorly)
+    for c in (hc, fc):
+        assert np.linalg.norm(np.cross(c - p, d)) < 1e-12
+    np.testing.assert_allclose(d, (hc - fc) / np.linalg.norm(hc - fc), atol=1e-12)
+    assert 0.035 < np.linalg.norm(hc - fc) < 0.06 and 0.009 < rh < 0.015 and 0.018 < rf < 0.028
+    # the head is convex (outside the sphere is outside the bone), the facet concave
+    hp, fp = ph.surface_checks()[f"{b}.talar_head"], ph.surface_checks()[f"{b}.posterior_facet"]
+    for pts, c, r in ((hp, hc, rh), (fp, fc, rf)):
+        np.testing.assert_allclose(np.linalg.norm(pts - c, axis=1), r, atol=1e-12)
+        assert np.abs(ph.sdf(b, pts)).max() < 1e-9
+    out_h = hc + 1.002 * (hp - hc)
+    out_f = fc + 0.998 * (fp - fc)
+    assert np.all(ph.sdf(b, out_h) > 0) and np.all(ph.sdf(b, out_f) > 0)
+    # the facet faces down onto the calcaneus, which carries the matching convex facet
+    J = truth["joints"]["joints"]
+    up = np.array(J[f"ankle_{side}"]["rotation"])[:, 1]
+    assert np.all((fp - fc) @ up > 0.8 * rf)
+    gap = ph.sdf(f"calcn_{side}", fp)
+    assert np.all(gap > 0.0005) and np.all(gap < 0.003), gap
+    # the joint origin is the axis point closest to the dome centre
+    o = np.array(J[f"subtalar_{side}"]["origin"])
+    assert abs((_lm(truth, b, "talar_dome_centre") - o) @ d) < 1e-12
+
+
+def test_talus_is_one_solid_with_cartilage_gaps(ph):
+    m = ph.mesh("talus_r")
+    assert m.is_watertight and m.body_count == 1
+    V = np.asarray(m.vertices)
+    for other in ("tibia_r", "fibula_r", "calcn_r"):
+        assert ph.sdf(other, V).min() >= 0.0005, other
+
+
+@pytest.mark.parametrize("voxel", [(1e-3, 1e-3, 1e-3), (0.5e-3, 0.5e-3, 2e-3)])
+def test_tibia_and_talus_rasterise_as_one_piece(ph, voxel):
+    from scipy import ndimage
+
+    from phantoms.imaging import label_volume
+
+    labels, _, lmap = label_volume(ph, voxel=voxel, bones=["tibia_r", "talus_r", "calcn_r"])
+    for b in ("tibia_r", "talus_r", "calcn_r"):
+        assert ndimage.label(labels == lmap[b])[1] == 1, b

@@ -12,6 +12,8 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("demo_out"), "--out", help="Output folder."),
         seed: int = typer.Option(0, "--seed", help="Phantom seed."),
         voxel: float = typer.Option(1.0, "--voxel", help="Isotropic voxel size of the phantom MRI, mm."),
+        quick: bool = typer.Option(False, "--quick", help="Short motion trials (faster)."),
+        pipeline: bool = typer.Option(True, "--pipeline/--no-pipeline", help="Run the MRI + motion pipeline on the phantom."),
     ) -> None:
         """Run the pipeline on a built-in phantom subject and print its errors against the known truth."""
         from rich.console import Console
@@ -20,6 +22,7 @@ def register(app: typer.Typer) -> None:
 
         console = Console()
         with console.status("demo") as status:
-            summary = run_demo(out, seed=seed, voxel_mm=voxel, progress=lambda m: status.update(f"demo: {m}"))
+            summary = run_demo(out, seed=seed, voxel_mm=voxel, progress=lambda m: status.update(f"demo: {m}"),
+                               pipeline=pipeline, short=quick)
         render_summary(summary, console)
-        console.print(f"results in {out}/ (demo.json, subject/)")
+        console.print(f"results in {out}/ (demo.json, subject/" + (", model/: model.osim, report.html)" if pipeline else ")"))

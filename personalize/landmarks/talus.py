@@ -19,6 +19,8 @@ talar head, pointing anteriorly (after Parr et al. 2012, also used by STAPLE).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from kinematics.errors import FitError
@@ -32,6 +34,11 @@ __all__ = ["detect_talus"]
 DOME_RADII = np.arange(0.012, 0.0351, 0.0015)
 HEAD_RADII = np.arange(0.008, 0.0301, 0.0015)
 FACET_RADII = np.arange(0.012, 0.0501, 0.002)
+#: distance of a posterior-facet inlier from the fitted sphere, m
+FACET_INLIER = 0.0008
+#: largest plausible posterior-facet radius, m (adults 14-25 mm); a flattened, noisy
+#: facet drives the refit towards a plane, which must be rejected, not used
+FACET_MAX_RADIUS = 0.04
 
 
 def _near(surface: Surface, other: Surface | None, gap: float) -> np.ndarray | None:
@@ -88,10 +95,24 @@ def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | No
         try:
             from personalize.fitting import fit_cylinder
             hint = right_hint if right_hint is not None else ax[:, 1]
-            f0 = fit_cylinder(V[dome_mask], normals=Nrm[dome_mask], axis_hint=hint)
-            fit, sel, p, u = refine_cylinder(V, Nrm, f0.point, f0.axis, f0.radius,
-                                             band=max(0.0015, 0.08 * f0.radius), min_cos=0.6,
-                                             mask=_dome_zone(V, Nrm, f0, up_hint) & dome_mask)
+            try:
+                f0 = fit_cylinder(V[dome_mask], normals=Nrm[dome_mask], axis_hint=hint)
+            except FitError:
+                # a slow robust fit on a noisy contact patch is still a usable start:
+                # the refinement below re-selects the dome points and refits
+                f0 = fit_cylinder(V[dome_mask], normals=Nrm[dome_mask], axis_hint=hint, require_convergence=False)
+            try:
+                fit, sel, p, u = refine_cylinder(V, Nrm, f0.point, f0.axis, f0.radius,
+                                                 band=max(0.0015, 0.08 * f0.radius), min_cos=0.6,
+                                                 mask=_dome_zone(V, Nrm, f0, up_hint) & dome_mask)
+            except FitError as exc:
+                if not (0.5 * DOME_RADII[0] < f0.radius < 2 * DOME_RADII[-1]):
+                    raise
+                # keep the contact-patch fit (flagged) rather than lose the dome to a slow refit
+                res.flag(FLAG_LOW_CONFIDENCE, f"talar dome refinement: {exc}; contact-patch cylinder kept")
+                fit, sel, u = f0, dome_mask, unit(np.asarray(f0.axis, float))
+                tt = (V[sel] - np.asarray(f0.point, float)) @ u
+                p = np.asarray(f0.point, float) + 0.5 * (tt.min() + tt.max()) * u
         except FitError as exc:
             res.flag(FLAG_LOW_CONFIDENCE, f"talar dome cylinder (tibia contact): {exc}")
             fit = None
@@ -142,6 +163,46 @@ def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | No
     return res
 
 
+@dataclass(frozen=True)
+class NormalLineSphere:
+    """Sphere from the common point of surface normals (centre (3,), m; radius, rms m; cov (3, 3) m^2)."""
+
+    centre: np.ndarray
+    radius: float
+    rms: float
+    cov: np.ndarray
+    n_points: int
+
+
+def _normal_line_sphere(P: np.ndarray, N: np.ndarray, w: np.ndarray) -> NormalLineSphere:
+    r"""Centre of a sphere as the weighted least-squares meeting point of its normal lines.
+
+    Model: every surface point :math:`p_i` with unit normal :math:`n_i` lies on a
+    sphere, so the line :math:`p_i + t n_i` passes through the centre :math:`c`.
+    Minimised: :math:`\sum_i w_i \lVert (I - n_i n_i^T)(p_i - c) \rVert^2`
+    (squared distances from c to the normal lines; w_i = vertex areas), solved
+    in closed form :math:`Q c = \sum_i w_i (I - n_i n_i^T) p_i`,
+    :math:`Q = \sum_i w_i (I - n_i n_i^T)`.  Radius: weighted mean of
+    :math:`\lVert p_i - c \rVert`; rms: of the radial residuals.  Covariance:
+    sandwich estimate :math:`Q^{-1} (\sigma^2 \sum_i w_i^2 (I - n_i n_i^T)) Q^{-1}`
+    with :math:`\sigma^2` the mean squared line distance per constrained direction.
+
+    P, N : (n, 3) points (m) and unit normals; w : (n,) weights.
+    """
+    Pr = np.eye(3)[None] - np.einsum("ij,ik->ijk", N, N)          # projectors orthogonal to each normal
+    Q = np.einsum("i,ijk->jk", w, Pr)
+    b = np.einsum("i,ijk,ik->j", w, Pr, P)
+    c = np.linalg.solve(Q, b)
+    e = np.einsum("ijk,ik->ij", Pr, P - c)
+    s2 = float(np.sum(w * np.einsum("ij,ij->i", e, e)) / (2.0 * w.sum()))
+    Qi = np.linalg.inv(Q)
+    cov = Qi @ (s2 * np.einsum("i,ijk->jk", w * w, Pr)) @ Qi
+    d = np.linalg.norm(P - c, axis=1)
+    r = float(np.average(d, weights=w))
+    rms = float(np.sqrt(np.average((d - r) ** 2, weights=w)))
+    return NormalLineSphere(c, r, rms, 0.5 * (cov + cov.T) + 1e-14 * np.eye(3), len(P))
+
+
 def _dome_zone(V, Nrm, f0, up_hint):
     d = V - f0.point
     radial = d - np.outer(d @ f0.axis, f0.axis)
@@ -162,8 +223,9 @@ def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
         if peaks:
             _, c0, r0 = peaks[0]
             try:
-                head, hsel = refine_sphere(V, Nrm, c0, r0, band=max(0.0015, 0.1 * r0), min_cos=0.6,
-                                           mask=q > q.max() - 0.035)
+                # narrow band, near-radial normals: the neck's blend must not flatten the head
+                head, hsel = refine_sphere(V, Nrm, c0, r0, band=max(0.001, 0.05 * r0), min_cos=0.8,
+                                           mask=q > q.max() - 0.035, iterations=6)
             except FitError as exc:
                 res.flag(FLAG_LOW_CONFIDENCE, f"talar head sphere: {exc}")
     # posterior calcaneal facet: inferior, behind the dome centre
@@ -173,21 +235,28 @@ def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
         facet_zone &= near_cal
     facet = None
     if facet_zone.sum() >= 20:
-        # Concave facet: Hough votes along the normals, every peak refined, the
-        # refined sphere explaining most of the facet (rms under 1.2 mm) wins.
+        # Concave facet: Hough votes along the normals, every peak refined with a
+        # narrow band and normals close to radial (a wide band lets the facet's rim
+        # and the surrounding convex underside drag the sphere to a larger radius);
+        # the sphere with the largest inlier area (points within FACET_INLIER of it,
+        # rms under 1.2 mm) wins: a fixed tolerance does not favour large radii.
         peaks = hough_centres(V[facet_zone], Nrm[facet_zone], FACET_RADII, inward=True, tol=0.002,
                               n_peaks=4, min_separation=0.008)
         best = None
         for _, c0, r0 in peaks:
             try:
-                f, fsel = refine_sphere(V, Nrm, c0, r0, band=max(0.0015, 0.08 * r0), convex=False,
-                                        min_cos=0.6, mask=facet_zone)
+                f, fsel = refine_sphere(V, Nrm, c0, r0, band=max(0.001, 0.03 * r0), convex=False,
+                                        min_cos=0.85, mask=facet_zone, iterations=6)
             except FitError:
                 continue
-            below = (np.asarray(f.centre) - (A[fsel] @ V[fsel]) / A[fsel].sum()) @ up < 0
-            if not (below and 0.008 < f.radius < 0.06):
+            # On a shallow, noisy cap the distance fit trades radius for centre
+            # height; the normals' common point is far better conditioned there.
+            f = _normal_line_sphere(V[fsel], Nrm[fsel], A[fsel])
+            below = (f.centre - (A[fsel] @ V[fsel]) / A[fsel].sum()) @ up < 0
+            if not (below and 0.008 < f.radius < FACET_MAX_RADIUS):
                 continue
-            score = (float(A[fsel].sum()) if f.rms < 0.0012 else 0.0, -f.rms)
+            inl = facet_zone & (np.abs(np.linalg.norm(V - f.centre, axis=1) - f.radius) < FACET_INLIER)
+            score = (float(A[inl].sum()) if f.rms < 0.0012 else 0.0, -f.rms)
             if best is None or score > best[0]:
                 best = (score, f)
         if best is not None:
@@ -198,7 +267,7 @@ def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
         res.flag(FLAG_LOW_CONFIDENCE, "subtalar axis not found")
         return
     hl = Landmark(np.asarray(head.centre, float), sphere_centre_cov(head))
-    fl = Landmark(np.asarray(facet.centre, float), sphere_centre_cov(facet))
+    fl = Landmark(facet.centre.copy(), facet.cov)
     res.landmarks["talar_head_centre"] = hl
     res.landmarks["posterior_facet_centre"] = fl
     ax = line_through(fl, hl)
@@ -210,4 +279,4 @@ def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
                               "rms": float(head.rms), "converged": bool(head.converged)}
     res.fits["posterior_calcaneal_facet"] = {"type": "sphere", "centre": fl.position.tolist(),
                                              "radius": float(facet.radius), "rms": float(facet.rms),
-                                             "converged": bool(facet.converged)}
+                                             "n_points": int(facet.n_points), "method": "normal lines"}

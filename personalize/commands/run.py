@@ -1,0 +1,67 @@
+"""``personalize run SUBJECT_DIR --out DIR``: the whole pipeline on one subject.
+
+SUBJECT_DIR holds ``labels.nii.gz`` (+ ``label_map.json``) or ``bones/``,
+``static.c3d``, any number of trial C3Ds (``functional_hip*.c3d`` calibrates
+the hip centres) and ``subject.json``; the folder `personalize phantom`
+writes is itself a valid SUBJECT_DIR.  Writes model.osim, model.json,
+meshes/, landmarks.json, joints.json, kinematics/<trial>.mot (+ marker
+errors), report.html and summary.json; nothing when the subject is refused
+(exit code 2 with a one-line message).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("run")
+    def run(
+        subject_dir: Path = typer.Argument(..., help="Subject folder (labels.nii.gz or bones/, static.c3d, trials, subject.json)."),
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder (published only when the run succeeds)."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the surface point sampling (runs are deterministic)."),
+        report: bool = typer.Option(True, "--report/--no-report", help="Write report.html."),
+        quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress display."),
+    ) -> None:
+        """Personalised model from MRI and motion capture: fused joints, model.osim, IK of every trial, report."""
+        from rich.console import Console
+        from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+        from ..pipeline import run_subject
+
+        console = Console(stderr=True, quiet=quiet)
+        with Progress(SpinnerColumn(), TextColumn("[bold]run[/bold] {task.description}"), TimeElapsedColumn(),
+                      console=console, transient=True) as prog:
+            task = prog.add_task("starting", total=None)
+            summary = run_subject(subject_dir, out, seed=seed, report=report,
+                                  progress=lambda m: prog.update(task, description=m))
+        if not quiet:
+            _print_summary(summary, out, Console())
+
+
+def _print_summary(summary: dict, out: Path, console) -> None:
+    from rich.table import Table
+
+    ik = summary.get("ik", {})
+    t = Table(title=f"{summary['subject']}: IK marker residuals (personalised model)")
+    for c in ("trial", "mean RMS (mm)", "max RMS (mm)", "frames"):
+        t.add_column(c, justify="left" if c == "trial" else "right")
+    for k, v in ik.items():
+        t.add_row(k, f"{v['rms_mean_mm']:.2f}", f"{v['rms_max_mm']:.2f}", str(v["frames"]))
+    console.print(t)
+    if "errors" in summary:
+        console.print(errors_table(summary["errors"]))
+    console.print(f"model.osim, report.html, summary.json in {out}/")
+
+
+def errors_table(errors: dict):
+    """rich Table of per-source errors against the truth (worst side)."""
+    from rich.table import Table
+
+    t = Table(title="Errors against the phantom truth (worst side, static-trial lab frame)")
+    for c in ("quantity", "MRI", "motion", "fused"):
+        t.add_column(c, justify="left" if c == "quantity" else "right")
+    for k, v in errors.items():
+        t.add_row(k, *(f"{v[s]:.2f}" for s in ("mri", "motion", "fused")))
+    return t

@@ -1,0 +1,397 @@
+"""The personalised engine model from fused subject parameters (issue P1, item 3).
+
+Every parameter is given in ONE frame: the lab frame of the static trial
+(X forward, Y left, Z up, metres), the subject standing still.  Bodies are
+built in that pose, so that the standing pose is q = 0 for every joint
+coordinate (the pelvis' free joint holds its static pose):
+
+* ``pelvis``: Plug-in-Gait pelvis frame of the static markers (origin
+  mid-ASIS, x anterior, y left, z up);
+* ``femur_s``: origin knee centre K, z = unit(H - K) (H the fused hip
+  centre), y = the knee axis (pointing left) made orthogonal to z;
+* ``tibia_s``: origin ankle centre A, z = unit(K - A), y as the femur;
+* ``talus_s`` (origin A), ``calcn_s`` (origin on the subtalar axis),
+  ``toes_s`` (origin on the metatarsophalangeal axis): axes of the tibia.
+
+Joints:
+
+* hip: three rotations (flexion about -y, adduction about ±x, internal
+  rotation about ±z of the pelvis axes) about the fused hip centre;
+* knee: a correlative knee (Pronost et al. 2010): rotations flexion about
+  the fused knee axis Y_k, ab/adduction about ±X_k, rotation about ±Z_k
+  (Z_k the femur's long axis made orthogonal to Y_k), and translations
+  knee_tx (anterior), knee_ty (proximal), knee_tz (lateral) that are a
+  linear law of the three rotations (`kinematics.correlative.CorrelativeLaw`,
+  enforced as linear couplings);
+* ankle, subtalar and metatarsophalangeal: revolute joints about the fused
+  axes (dorsiflexion, inversion, extension positive); the mtp coordinate is
+  locked unless the toes carry markers.
+
+Markers are placed from the static trial: offset = R_bᵀ (m - o_b) with m the
+median static position and (o_b, R_b) the body's static pose.
+
+Mass properties: de Leva (1996, J Biomech 29:1223) segment mass fractions,
+centre-of-mass positions and radii of gyration of the adult male, scaled by
+the subject's mass and the model's own segment lengths.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from kinematics.correlative import CorrelativeLaw
+from kinematics.errors import InputError
+from kinematics.functions import Linear
+from kinematics.joints import CustomJoint, Transform, TransformAxis, free, revolute
+from kinematics.model import Body, Coordinate, Marker, Model
+
+__all__ = ["SideParameters", "SubjectParameters", "PersonalModel", "build_personal_model", "default_knee_law",
+           "MARKER_BODIES", "DE_LEVA", "save_model_json", "save_model_osim", "write_meshes"]
+
+_X, _Y, _Z = np.eye(3)
+
+#: marker name (without side letter) -> segment kind; pelvis markers keep their full names
+MARKER_BODIES = {
+    "pelvis": ("RASI", "LASI", "RPSI", "LPSI", "SACR", "SYMP"),
+    "femur": ("THI", "KNE", "KNEM", "THIP", "THIA", "TRO", "MFC"),
+    "tibia": ("TIB", "ANK", "ANKM", "TIBM1", "TIBM2", "TIBM3", "TTB", "HFB", "MMA"),
+    "calcn": ("HEE", "TOE", "D1M", "D5M"),
+    "toes": ("HLX",),
+}
+
+#: de Leva (1996), males: mass fraction, com from the proximal end (fraction of length),
+#: radii of gyration (sagittal, transverse, longitudinal; fraction of length)
+DE_LEVA = {
+    "pelvis": (0.1117, None, (0.615, 0.551, 0.587)),     # "lower trunk"
+    "thigh": (0.1416, 0.4095, (0.329, 0.329, 0.149)),
+    "shank": (0.0433, 0.4459, (0.255, 0.249, 0.103)),
+    "foot": (0.0137, 0.4415, (0.257, 0.245, 0.124)),
+}
+#: share of the foot's mass given to talus, calcaneus (+ mid-foot) and toes
+FOOT_SPLIT = {"talus": 0.10, "calcn": 0.75, "toes": 0.15}
+
+#: default knee law slopes (m/rad) of (knee_tx anterior, knee_ty proximal, knee_tz lateral) on
+#: (flexion, adduction, rotation): the centres of the published ranges the phantoms draw from
+#: (femoral roll-back 2-6 mm/rad, tibial sinking 1-3 mm/rad, ab/adduction and rotation coupling)
+DEFAULT_KNEE_SLOPES = 1e-3 * np.array([[4.0, 0.0, 0.0], [-2.0, 0.0, 0.0], [0.0, 5.5, -4.0]])
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, float)
+    n = np.linalg.norm(v)
+    if not np.isfinite(n) or n < 1e-12:
+        raise InputError("model", "a zero or non-finite direction in the subject parameters")
+    return v / n
+
+
+def _frame_zy(z, y_hint) -> np.ndarray:
+    """Rotation with z = unit(z) and y = y_hint made orthogonal to z (columns x, y, z)."""
+    z = _unit(z)
+    y = _unit(np.asarray(y_hint, float) - np.dot(y_hint, z) * z)
+    return np.column_stack([np.cross(y, z), y, z])
+
+
+def _frame_yz(y, z_hint) -> np.ndarray:
+    """Rotation with y = unit(y) exactly and z = z_hint made orthogonal to y."""
+    y = _unit(y)
+    z = _unit(np.asarray(z_hint, float) - np.dot(z_hint, y) * y)
+    return np.column_stack([np.cross(y, z), y, z])
+
+
+@dataclass(frozen=True)
+class SideParameters:
+    """One leg's joint parameters, static-trial lab frame (m, unit vectors; any sense for axes).
+
+    hip : (3,) hip centre; knee : (3,) knee centre; knee_axis : (3,)
+    ankle : (3,) ankle centre; ankle_axis : (3,)
+    subtalar : (3,) point on the subtalar axis; subtalar_axis : (3,) (anterior-pointing after orientation)
+    mtp : (3,) point on the metatarsophalangeal axis; mtp_axis : (3,)
+    knee_law : CorrelativeLaw of this side's knee (default: `default_knee_law`)
+    """
+
+    hip: np.ndarray
+    knee: np.ndarray
+    knee_axis: np.ndarray
+    ankle: np.ndarray
+    ankle_axis: np.ndarray
+    subtalar: np.ndarray
+    subtalar_axis: np.ndarray
+    mtp: np.ndarray
+    mtp_axis: np.ndarray
+    knee_law: CorrelativeLaw | None = None
+
+
+@dataclass(frozen=True)
+class SubjectParameters:
+    """Everything the model builder needs, static-trial lab frame (X forward, Y left, Z up; m).
+
+    pelvis_origin : (3,), pelvis_rotation : (3, 3) Plug-in-Gait pelvis frame (columns x, y, z)
+    sides : dict 'r'/'l' -> SideParameters
+    markers : dict marker name -> (3,) median static position
+    mass : kg; height : m
+    sources : dict parameter -> provenance text (written to model.json)
+    name : model name
+    """
+
+    pelvis_origin: np.ndarray
+    pelvis_rotation: np.ndarray
+    sides: dict
+    markers: dict
+    mass: float
+    height: float
+    sources: dict = field(default_factory=dict)
+    name: str = "personalised"
+
+
+@dataclass(frozen=True)
+class PersonalModel:
+    """The built model and what it was built from.
+
+    model : kinematics.model.Model (ground = static lab frame, Z up)
+    standing_q : (n_q,) coordinates of the static pose
+    body_frames : dict body -> (origin (3,), rotation (3, 3)) static lab pose
+    parameters : SubjectParameters
+    knee_laws : dict side -> CorrelativeLaw
+    """
+
+    model: Model
+    standing_q: np.ndarray
+    body_frames: dict
+    parameters: SubjectParameters
+    knee_laws: dict
+
+
+def default_knee_law(side: str) -> CorrelativeLaw:
+    """The generic knee law (`DEFAULT_KNEE_SLOPES`), zero translation at zero angles (the standing pose)."""
+    return CorrelativeLaw(
+        joint=f"knee_{side}",
+        independent=(f"knee_flexion_{side}", f"knee_adduction_{side}", f"knee_rotation_{side}"),
+        dependent=(f"knee_tx_{side}", f"knee_ty_{side}", f"knee_tz_{side}"),
+        coefficients=np.column_stack([DEFAULT_KNEE_SLOPES, np.zeros(3)]),
+        independent_units=("rad",) * 3, dependent_units=("m",) * 3,
+    )
+
+
+def _body_of_marker(name: str, sides) -> str | None:
+    if name in MARKER_BODIES["pelvis"]:
+        return "pelvis"
+    s = name[:1].lower()
+    if s not in sides:
+        return None
+    for kind in ("femur", "tibia", "calcn", "toes"):
+        if name[1:] in MARKER_BODIES[kind]:
+            return f"{kind}_{s}"
+    return None
+
+
+def _inertia(mass: float, length: float, radii) -> np.ndarray:
+    """Principal inertia (kg m²) in body axes x anterior (transverse), y medio-lateral (sagittal), z long."""
+    r_sag, r_tr, r_long = radii
+    return mass * length**2 * np.diag([r_tr**2, r_sag**2, r_long**2])
+
+
+def build_personal_model(p: SubjectParameters) -> PersonalModel:
+    """Build the personalised model (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        Degenerate geometry (coincident centres, an axis along a bone) or no markers.
+    """
+    o_p = np.asarray(p.pelvis_origin, float)
+    R_p = np.asarray(p.pelvis_rotation, float)
+    frames = {"pelvis": (o_p, R_p)}
+    laws = {}
+    coords = [Coordinate("pelvis_rotation"), Coordinate("pelvis_list"), Coordinate("pelvis_tilt"),
+              Coordinate("pelvis_tx", "translational"), Coordinate("pelvis_ty", "translational"),
+              Coordinate("pelvis_tz", "translational")]
+    joints = [free("ground_pelvis", "ground", "pelvis", [c.name for c in coords], sequence="ZXY")]
+    length_pelvis = 0.0833 * p.height                       # de Leva lower-trunk length / stature
+    bodies = [Body("pelvis", DE_LEVA["pelvis"][0] * p.mass, np.zeros(3),
+                   _inertia(DE_LEVA["pelvis"][0] * p.mass, length_pelvis, DE_LEVA["pelvis"][2]))]
+    toes_markers = {n for n in p.markers if n[1:] in MARKER_BODIES["toes"]}
+
+    def local(body, x):
+        o, R = frames[body]
+        return R.T @ (np.asarray(x, float) - o)
+
+    def offset(body, origin, R_joint) -> Transform:
+        o, R = frames[body]
+        return Transform(R.T @ R_joint, R.T @ (np.asarray(origin, float) - o))
+
+    ax = lambda v, c: TransformAxis(np.asarray(v, float), Linear(), (c,))  # noqa: E731
+    for s, sp in p.sides.items():
+        sg = 1.0 if s == "r" else -1.0
+        H, K, A = (np.asarray(v, float) for v in (sp.hip, sp.knee, sp.ankle))
+        if min(np.linalg.norm(H - K), np.linalg.norm(K - A)) < 0.05:
+            raise InputError("model", f"side {s}: hip, knee and ankle centres are closer than 5 cm")
+        right = -R_p[:, 1]                                  # subject's right in the static lab
+        k_left = -_unit(sp.knee_axis) if np.dot(sp.knee_axis, right) > 0 else _unit(sp.knee_axis)
+        a_right = _unit(sp.ankle_axis) if np.dot(sp.ankle_axis, right) > 0 else -_unit(sp.ankle_axis)
+        fwd = R_p[:, 0]
+        st = _unit(sp.subtalar_axis) if np.dot(sp.subtalar_axis, fwd) > 0 else -_unit(sp.subtalar_axis)
+        m_right = _unit(sp.mtp_axis) if np.dot(sp.mtp_axis, right) > 0 else -_unit(sp.mtp_axis)
+        R_f = _frame_zy(H - K, k_left)
+        R_t = _frame_zy(K - A, k_left)
+        sub = np.asarray(sp.subtalar, float)
+        sub = sub + np.dot(A - sub, st) * st                # the subtalar axis point nearest the ankle centre
+        frames.update({f"femur_{s}": (K, R_f), f"tibia_{s}": (A, R_t), f"talus_{s}": (A, R_t),
+                       f"calcn_{s}": (sub, R_t), f"toes_{s}": (np.asarray(sp.mtp, float), R_t)})
+        hc = [f"hip_flexion_{s}", f"hip_adduction_{s}", f"hip_rotation_{s}"]
+        kc = [f"knee_flexion_{s}", f"knee_adduction_{s}", f"knee_rotation_{s}"]
+        kt = [f"knee_tx_{s}", f"knee_ty_{s}", f"knee_tz_{s}"]
+        coords += [Coordinate(n, range=(-np.pi / 2, np.pi / 2)) for n in hc]
+        coords += [Coordinate(kc[0], range=(-0.6, 2.6)), Coordinate(kc[1], range=(-0.6, 0.6)),
+                   Coordinate(kc[2], range=(-0.9, 0.9))]
+        coords += [Coordinate(n, "translational", range=(-0.03, 0.03)) for n in kt]
+        coords += [Coordinate(f"ankle_angle_{s}", range=(-1.2, 1.0)), Coordinate(f"subtalar_angle_{s}", range=(-0.8, 0.8)),
+                   Coordinate(f"mtp_angle_{s}", range=(-0.6, 1.2), locked=not any(n[0].lower() == s for n in toes_markers))]
+        L_th, L_sh = float(np.linalg.norm(H - K)), float(np.linalg.norm(K - A))
+        L_ft = float(np.linalg.norm(np.asarray(sp.mtp, float) - A)) * 1.35   # heel-to-toe ~ 1.35 x ankle-to-mtp
+        m_th, m_sh, m_ft = (DE_LEVA[k][0] * p.mass for k in ("thigh", "shank", "foot"))
+        bodies += [
+            Body(f"femur_{s}", m_th, local(f"femur_{s}", H + DE_LEVA["thigh"][1] * (K - H)), _inertia(m_th, L_th, DE_LEVA["thigh"][2])),
+            Body(f"tibia_{s}", m_sh, local(f"tibia_{s}", K + DE_LEVA["shank"][1] * (A - K)), _inertia(m_sh, L_sh, DE_LEVA["shank"][2])),
+            Body(f"talus_{s}", FOOT_SPLIT["talus"] * m_ft, np.zeros(3), _inertia(FOOT_SPLIT["talus"] * m_ft, 0.3 * L_ft, DE_LEVA["foot"][2])),
+            Body(f"calcn_{s}", FOOT_SPLIT["calcn"] * m_ft, local(f"calcn_{s}", 0.5 * (A + np.asarray(sp.mtp, float))),
+                 _inertia(FOOT_SPLIT["calcn"] * m_ft, L_ft, DE_LEVA["foot"][2])),
+            Body(f"toes_{s}", FOOT_SPLIT["toes"] * m_ft, np.zeros(3), _inertia(FOOT_SPLIT["toes"] * m_ft, 0.25 * L_ft, DE_LEVA["foot"][2])),
+        ]
+        # hip: joint frame = pelvis axes at the hip centre (angles zero standing)
+        joints.append(CustomJoint(
+            f"hip_{s}", "pelvis", f"femur_{s}", tuple(hc), offset("pelvis", H, R_p), offset(f"femur_{s}", H, R_p),
+            rotations=(ax(-_Y, hc[0]), ax(sg * _X, hc[1]), ax(sg * _Z, hc[2])), kind_name="custom"))
+        # knee: flexion exactly about the fused axis
+        R_k = _frame_yz(k_left, H - K)
+        joints.append(CustomJoint(
+            f"knee_{s}", f"femur_{s}", f"tibia_{s}", tuple(kc + kt), offset(f"femur_{s}", K, R_k), offset(f"tibia_{s}", K, R_k),
+            rotations=(ax(_Y, kc[0]), ax(sg * _X, kc[1]), ax(sg * _Z, kc[2])),
+            translations=(ax(_X, kt[0]), ax(_Z, kt[1]), ax(-sg * _Y, kt[2])), kind_name="custom"))
+        joints.append(revolute(f"ankle_{s}", f"tibia_{s}", f"talus_{s}", f"ankle_angle_{s}", axis=R_t.T @ a_right,
+                               parent_offset=offset(f"tibia_{s}", A, R_t), child_offset=offset(f"talus_{s}", A, R_t)))
+        st_inv = st if s == "r" else -st                    # inversion positive on both sides
+        joints.append(revolute(f"subtalar_{s}", f"talus_{s}", f"calcn_{s}", f"subtalar_angle_{s}", axis=R_t.T @ st_inv,
+                               parent_offset=offset(f"talus_{s}", sub, R_t), child_offset=offset(f"calcn_{s}", sub, R_t)))
+        joints.append(revolute(f"mtp_{s}", f"calcn_{s}", f"toes_{s}", f"mtp_angle_{s}", axis=R_t.T @ m_right,
+                               parent_offset=offset(f"calcn_{s}", sp.mtp, R_t), child_offset=offset(f"toes_{s}", sp.mtp, R_t)))
+        laws[s] = sp.knee_law or default_knee_law(s)
+    markers = []
+    for n in sorted(p.markers):
+        body = _body_of_marker(n, p.sides)
+        x = np.asarray(p.markers[n], float)
+        if body is None or body not in frames or not np.all(np.isfinite(x)):
+            continue
+        markers.append(Marker(n, body, local(body, x)))
+    if not markers:
+        raise InputError("model", "no static marker could be placed on the model")
+    base = Model(tuple(bodies), tuple(joints), tuple(coords), tuple(markers), gravity=np.array([0.0, 0.0, -9.80665]),
+                 name=p.name)
+    coupling = None
+    for s in p.sides:
+        c = laws[s].to_coupling(base.coordinate_names)
+        coupling = c if coupling is None else coupling.stack(c)
+    model = base.with_couplings(coupling.over(base.coordinate_names)) if coupling is not None else base
+    q0 = np.zeros(model.n_q)
+    ix = model.coordinate_index
+    q0[[ix("pelvis_rotation"), ix("pelvis_list"), ix("pelvis_tilt")]] = Rotation.from_matrix(R_p).as_euler("ZXY")
+    q0[[ix("pelvis_tx"), ix("pelvis_ty"), ix("pelvis_tz")]] = o_p
+    # default pose = static pose (IK's cold start and OpenSim's default state)
+    coords_def = tuple(Coordinate(c.name, c.kind, float(q0[i]), c.range, c.locked, c.clamped)
+                       for i, c in enumerate(model.coordinates))
+    model = model.replace(coordinates=coords_def)
+    return PersonalModel(model, q0, frames, p, laws)
+
+
+# --------------------------------------------------------------------------- export
+def write_meshes(pm: PersonalModel, meshes: dict, folder: Path) -> dict:
+    """Write bone meshes in their body frames as binary STL (metres) into `folder`.
+
+    meshes : dict bone name -> (trimesh.Trimesh in the static lab frame, body name)
+
+    Returns dict bone -> (body, relative file name).
+    """
+    from kinematics.atomic import atomic_path, inside
+
+    out = {}
+    for bone, (mesh, body) in sorted(meshes.items()):
+        if body not in pm.body_frames:
+            continue
+        o, R = pm.body_frames[body]
+        m = mesh.copy()
+        T = np.eye(4)
+        T[:3, :3] = R.T
+        T[:3, 3] = -R.T @ o
+        m.apply_transform(T)
+        path = inside(folder, f"{bone}.stl")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            data = m.export(file_type="stl")
+            # binary STL header (80 bytes) states units and frame
+            head = f"units m; frame body {body} of the personalised model".encode()[:80].ljust(80, b" ")
+            tmp.write_bytes(head + data[80:])
+        out[bone] = (body, f"{folder.name}/{bone}.stl")
+    return out
+
+
+def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = None) -> Path:
+    """Export to OpenSim (``kinematics.opensim_io.to_opensim``) with the bone meshes attached to their bodies."""
+    import os
+
+    from kinematics.atomic import atomic_path
+    from kinematics.opensim_io import to_opensim
+
+    om = to_opensim(pm.model)
+    import opensim as osim
+
+    for bone, (body, rel) in (mesh_files or {}).items():
+        b = om.updBodySet().get(body)
+        g = osim.Mesh(rel)
+        g.setName(f"{bone}_geometry")
+        b.attachGeometry(g)
+    om.finalizeConnections()
+    with atomic_path(path) as tmp:
+        if not om.printToXML(os.fspath(tmp)):
+            raise InputError(path, "OpenSim could not write the model")
+    return Path(path)
+
+
+def model_json(pm: PersonalModel, mesh_files: dict | None = None) -> dict:
+    """JSON description of the model (SI units, frames stated)."""
+    m = pm.model
+    bodies = []
+    for b in m.bodies[1:]:
+        o, R = pm.body_frames[b.name]
+        bodies.append({"name": b.name, "mass": b.mass, "com": b.com.tolist(), "inertia": b.inertia.tolist(),
+                       "static_origin": o.tolist(), "static_rotation": R.tolist(),
+                       "meshes": [f for bone, (body, f) in sorted((mesh_files or {}).items()) if body == b.name]})
+    joints = []
+    for j in m.joints:
+        joints.append({"name": j.name, "type": j.kind_name if hasattr(j, "kind_name") else j.kind,
+                       "parent": j.parent, "child": j.child, "coordinates": list(j.coordinates),
+                       "parent_offset": {"rotation": j.parent_offset.rotation.tolist(), "translation": j.parent_offset.translation.tolist()},
+                       "child_offset": {"rotation": j.child_offset.rotation.tolist(), "translation": j.child_offset.translation.tolist()},
+                       "rotation_axes": [a.axis.tolist() for a in getattr(j, "rotations", ())],
+                       "translation_axes": [a.axis.tolist() for a in getattr(j, "translations", ())]})
+    return {
+        "units": "m, kg, kg m^2, rad",
+        "frame": "ground = lab frame of the static trial (X forward, Y left, Z up); body offsets in body frames",
+        "name": m.name,
+        "mass_properties": "de Leva (1996) male segment fractions scaled by the subject's mass and segment lengths",
+        "bodies": bodies, "joints": joints,
+        "coordinates": [{"name": c.name, "kind": c.kind, "default": c.default, "range": list(c.range), "locked": c.locked}
+                        for c in m.coordinates],
+        "markers": [{"name": mk.name, "body": mk.body, "offset": mk.offset.tolist()} for mk in m.markers],
+        "knee_laws": {s: law.to_json() for s, law in pm.knee_laws.items()},
+        "sources": pm.parameters.sources,
+        "standing_q": dict(zip(m.coordinate_names, pm.standing_q.tolist())),
+    }
+
+
+def save_model_json(pm: PersonalModel, path: Path, mesh_files: dict | None = None) -> Path:
+    from kinematics.atomic import write_text
+
+    return write_text(path, json.dumps(model_json(pm, mesh_files), indent=1) + "\n")

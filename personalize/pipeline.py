@@ -1,0 +1,933 @@
+"""The single-subject pipeline: MRI + motion capture -> fused personalised model (issue P1).
+
+`run_subject(subject_dir, out)` does, stage by stage:
+
+1. **inputs**: ``labels.nii.gz`` (+ ``label_map.json``) or ``bones/``,
+   ``static.c3d``, ``subject.json`` and every other ``*.c3d`` (gait, crouch,
+   functional ``functional_hip*.c3d``); refuses (`InputError`) a missing
+   static or motion trial, a trial whose rigid pelvis marker distances differ
+   from the static trial's (another subject), labels and markers without a
+   common side;
+2. **MRI**: bone surfaces (`personalize.surfaces.load_bones`), landmarks and
+   joint frames (`personalize.landmarks.detect_landmarks`,
+   `personalize.frames.joints_from_landmarks`), scanner frame;
+3. **registration** of each segment's MRI landmarks to the static markers
+   (`personalize.registration`): the pelvis from its markers; femur, shank
+   and foot from their markers plus the proximal joint centre already
+   located in the lab (a joint centre is a point of both bones), so each
+   MRI joint centre and axis reaches the lab frame of the static trial
+   with its propagated covariance;
+4. **motion**: marker clusters referenced to their static positions (so a
+   cluster frame IS the static lab frame): SCoRE hip centres (pelvis vs
+   thigh clusters, on the functional trial), SARA knee axes (thigh vs shank
+   clusters, on the other dynamic trials), the transmalleolar ankle axis and
+   Plug-in-Gait knee/ankle centres of the static trial; with a plain
+   Plug-in-Gait marker set (no clusters, no medial markers) the Davis hip
+   centre and the Plug-in-Gait knee axis stand in (noted in ``notes``);
+5. **fusion** (Tändl et al. 2010, sec. 4.5): product of Gaussians of the two
+   sources for the hip, knee and ankle centres, and on the sphere for the
+   knee and ankle axes (`personalize.fusion`);
+6. **model** (`personalize.model_builder`): the knee law's flexion slopes
+   fitted from IK with free knee translations when physiological, else the
+   default law (`fit_knee_laws`, the choice recorded in ``sources``); its
+   intercepts are zero at the fused knee centre (the fused centre IS the
+   law's standing translation); written as ``model.osim`` (with the bone
+   meshes), ``model.json`` and ``meshes/<bone>.stl``;
+7. **IK** of every trial (`kinematics.ik.solve_ik`): ``kinematics/<trial>.mot``
+   and ``kinematics/<trial>_marker_errors.sto``;
+8. ``summary.json`` and ``report.html``; for phantom subjects (``truth.json``
+   and ``truth/static_centres.trc`` present) the errors against the truth.
+
+Frames: every estimate is compared in the lab frame of the static trial
+(X forward, Y left, Z up, metres).  The phantom truth (scanner frame) is
+mapped to it by the rigid transform that carries truth.json's joint centres
+onto the true static joint centres of ``truth/static_centres.trc``.
+
+Uncertainty floors.  The motion estimates' covariances from their own
+residuals ignore the soft-tissue artefact, which is systematic; they are
+floored at the accuracy of functional methods on skin markers:
+hip centre sd `MOTION_HIP_SD` = (anterior, medio-lateral, proximal-distal)
+in the pelvis axes (thigh skin slides mostly along the femur, Cappozzo et al.
+1996; functional hip centres are off by 1-2 cm under such artefact, Ehrig
+et al. 2006, Camomilla et al. 2006), knee axis `MOTION_KNEE_AXIS_SD_DEG`,
+transmalleolar ankle axis `MOTION_ANKLE_AXIS_SD_DEG`, Plug-in-Gait
+knee/ankle centres `PIG_CENTRE_SD`.  These values match the errors measured
+on the motion phantoms (benchmarks/pipeline_phantoms.py).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from kinematics.atomic import inside, staged_dir, write_text
+from kinematics.errors import FitError, InputError
+from kinematics.markers import MarkerTrial
+
+__all__ = ["run_subject", "SubjectInputs", "find_inputs", "estimate_joints", "JointEstimates", "fit_knee_laws",
+           "truth_in_static_lab", "errors_against_truth", "write_phantom_subject", "SHORT_TRIALS", "MOTION_HIP_SD", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD"]
+
+MOTION_HIP_SD = (0.006, 0.010, 0.016)
+MOTION_KNEE_AXIS_SD_DEG = 6.0
+MOTION_ANKLE_AXIS_SD_DEG = 6.0
+PIG_CENTRE_SD = 0.010
+#: frames admitted per iteration into the IK's pipelined window (`kinematics.ik.solve_ik` block): the
+#: default 16 lets sparse marker sets (Plug-in-Gait only) fall into a wrong minimum on fast star-arcs
+IK_BLOCK = 4
+#: fall-backs without functional data: Davis regression hip centre (errors ~1-3 cm, Leardini et al. 1999),
+#: Plug-in-Gait knee axis from the KNE/THI markers
+DAVIS_HIP_SD = 0.015
+PIG_KNEE_AXIS_SD_DEG = 8.0
+#: default subtalar axis (Inman 1976): 42 deg up from the foot's long axis, 23 deg medial, in the static lab
+SUBTALAR_DEFAULT = (42.0, 23.0)
+
+_PELVIS = ("RASI", "LASI", "RPSI", "LPSI")
+_THIGH = ("THI", "KNE", "THIP", "THIA", "KNEM", "TRO")
+_SHANK = ("TIB", "ANK", "ANKM", "TIBM1", "TIBM2", "TIBM3", "TTB", "HFB")
+_REQUIRED = ("THI", "KNE", "TIB", "ANK", "HEE", "TOE")
+#: static-marker aliases to the landmark names of `personalize.registration` (medial markers)
+_ALIASES = {"KNEM": "MFC", "ANKM": "MMA"}
+
+
+# --------------------------------------------------------------------------- inputs
+@dataclass(frozen=True)
+class SubjectInputs:
+    """A subject folder, read and checked.
+
+    folder : Path; bones : labels file or bones/ folder; label_map : Path or None
+    static : MarkerTrial; trials : dict name -> MarkerTrial (every dynamic trial, incl. functional)
+    functional : name of the hip calibration trial or None
+    subject : kinematics.subject.SubjectMeasurements
+    truth : dict (truth.json) or None; sides : tuple of sides with both bones and markers
+    """
+
+    folder: Path
+    bones: Path
+    label_map: Path | None
+    static: MarkerTrial
+    trials: dict
+    functional: str | None
+    subject: object
+    truth: dict | None
+    sides: tuple
+
+
+def _pelvis_distances(trial: MarkerTrial) -> np.ndarray:
+    d = []
+    for a, b in (("RASI", "LASI"), ("RASI", "RPSI"), ("LASI", "LPSI"), ("RPSI", "LPSI")):
+        x = np.linalg.norm(trial.marker(a) - trial.marker(b), axis=1)
+        x = x[np.isfinite(x)]
+        d.append(np.median(x) if x.size else np.nan)
+    return np.array(d)
+
+
+def find_inputs(subject_dir: str | Path) -> SubjectInputs:
+    """Locate and read the inputs of a subject folder (see the module docstring).
+
+    Raises
+    ------
+    InputError : one line naming the file and the problem
+    """
+    from kinematics.c3d import read_c3d
+    from kinematics.subject import read_subject
+
+    folder = Path(subject_dir)
+    if not folder.is_dir():
+        raise InputError(folder, "subject folder not found")
+    bones = next((folder / n for n in ("labels.nii.gz", "labels.nii", "labels.nrrd") if (folder / n).is_file()), None)
+    if bones is None and (folder / "bones").is_dir():
+        bones = folder / "bones"
+    if bones is None:
+        raise InputError(folder, "no bone images: expected labels.nii.gz (with label_map.json) or a bones/ folder of meshes")
+    label_map = folder / "label_map.json" if (folder / "label_map.json").is_file() and bones.is_file() else None
+    if not (folder / "static.c3d").is_file():
+        raise InputError(folder / "static.c3d", "missing: the static (standing) trial is required")
+    if not (folder / "subject.json").is_file():
+        raise InputError(folder / "subject.json", "missing: height, mass and Plug-in-Gait measurements are required")
+    subject = read_subject(folder / "subject.json")
+    static = read_c3d(folder / "static.c3d")
+    static.require(list(_PELVIS))
+    names = sorted(p.name for p in folder.glob("*.c3d") if p.name != "static.c3d")
+    if not names:
+        raise InputError(folder, "no motion trial: at least one C3D besides static.c3d is required")
+    trials = {}
+    ref = _pelvis_distances(static)
+    for n in names:
+        tr = read_c3d(folder / n)
+        missing = [m for m in _PELVIS if m not in tr.names]
+        if missing:
+            raise InputError(folder / n, f"pelvis markers {', '.join(missing)} missing")
+        s1, s2 = static.extra.get("subject"), tr.extra.get("subject")
+        if s1 and s2 and s1 != s2:
+            raise InputError(folder / n, f"labelled for subject {s2!r} but static.c3d is subject {s1!r}")
+        d = _pelvis_distances(tr)
+        diff = np.nanmax(np.abs(d - ref))
+        if not np.isfinite(diff) or diff > max(0.015, 0.06 * np.nanmin(ref)):
+            raise InputError(folder / n, f"pelvis marker distances differ from static.c3d by {diff * 1e3:.0f} mm "
+                                         "(rigid on one subject): a trial of another subject?")
+        trials[Path(n).stem] = tr
+    functional = next((k for k in ("functional_hip",) if k in trials), None)
+    if functional is None:
+        functional = next((k for k in sorted(trials) if k.startswith("functional")), None)
+    truth = None
+    if (folder / "truth.json").is_file():
+        truth = json.loads((folder / "truth.json").read_text(encoding="utf-8"))
+    marker_sides = [s for s in ("r", "l") if all(s.upper() + m in static.names for m in _REQUIRED)]
+    if not marker_sides:
+        raise InputError(folder / "static.c3d", f"no side has all of the markers {', '.join(_REQUIRED)} (R/L prefixed)")
+    return SubjectInputs(folder, bones, label_map, static, trials, functional, subject, truth, tuple(marker_sides))
+
+
+# --------------------------------------------------------------------------- motion estimates
+def _static_reference(static: MarkerTrial, names) -> tuple[list[str], np.ndarray]:
+    use, ref = [], []
+    for n in names:
+        if n in static.names:
+            x = static.marker(n)
+            x = x[np.all(np.isfinite(x), axis=1)]
+            if len(x):
+                use.append(n)
+                ref.append(np.median(x, axis=0))
+    return use, np.array(ref)
+
+
+def _cluster_pose(static: MarkerTrial, trials, names):
+    """Cluster poses over the concatenated trials; the cluster frame is the static lab frame."""
+    from kinematics.segments import rigid_pose
+
+    names0, ref0 = _static_reference(static, names)
+    ref_of = dict(zip(names0, ref0))
+    use = [n for n in names0 if all(n in t.names for t in trials)]
+    if len(use) < 3:
+        return None
+    ref = np.array([ref_of[n] for n in use])
+    meas = np.concatenate([t.subset(use).positions for t in trials], axis=0)
+    return rigid_pose(ref, meas)
+
+
+def motion_hip(static, functional: MarkerTrial, side: str, axes=None):
+    """SCoRE hip centre (static lab frame, m) and covariance.
+
+    The covariance from the SCoRE residuals is floored by the soft-tissue
+    artefact: `MOTION_HIP_SD` = (anterior, medio-lateral, proximal-distal) sd
+    in the pelvis axes `axes` (3x3, columns x, y, z; the static lab axes if None).
+    """
+    from kinematics.functional import score
+
+    S = side.upper()
+    P = _cluster_pose(static, [functional], _PELVIS + ("SACR",))
+    D = _cluster_pose(static, [functional], tuple(S + m for m in _THIGH))
+    if P is None or D is None:
+        raise InputError(functional.source, f"SCoRE needs 3 pelvis and 3 {S} thigh markers")
+    est = score(P.R, P.t, D.R, D.t)
+    floor = np.diag(np.asarray(MOTION_HIP_SD, float) ** 2 * np.ones(3))
+    if axes is not None:
+        floor = axes @ floor @ axes.T
+    return est.proximal, est.cov_proximal + floor, est
+
+
+def motion_knee_axis(static, trials, side: str):
+    """SARA knee axis (static lab frame) of the thigh and shank clusters over `trials`; (direction, sd_deg, point, point_cov)."""
+    from kinematics.functional import sara
+
+    S = side.upper()
+    P = _cluster_pose(static, trials, tuple(S + m for m in _THIGH))
+    D = _cluster_pose(static, trials, tuple(S + m for m in _SHANK))
+    if P is None or D is None:
+        raise InputError(static.source, f"SARA needs 3 {S} thigh and 3 {S} shank markers")
+    est = sara(P.R, P.t, D.R, D.t)
+    sd = float(np.hypot(np.degrees(est.direction_sd), MOTION_KNEE_AXIS_SD_DEG))
+    return est.direction_proximal, sd, est.point_proximal, est.cov_point_proximal + PIG_CENTRE_SD**2 * np.eye(3)
+
+
+# --------------------------------------------------------------------------- joint estimates
+@dataclass
+class JointEstimates:
+    """Per side and quantity: the MRI, motion and fused estimates in the static lab frame.
+
+    centres[side][joint] = {"mri": (x, C), "motion": (x, C), "fused": Fused}
+    axes[side][joint] = {"mri": (u, sd_deg), "motion": (u, sd_deg), "fused": FusedAxis}
+    extra: registrations, pelvis frame, notes, sources
+    """
+
+    centres: dict = field(default_factory=dict)
+    axes: dict = field(default_factory=dict)
+    registrations: dict = field(default_factory=dict)
+    pelvis: tuple | None = None
+    notes: list = field(default_factory=list)
+    sources: dict = field(default_factory=dict)
+    points: dict = field(default_factory=dict)
+
+
+def _aliased_static(static: MarkerTrial) -> MarkerTrial:
+    names = list(static.names)
+    pos = [static.positions]
+    for s in "RL":
+        for a, b in _ALIASES.items():
+            if s + a in static.names and s + b not in static.names:
+                names.append(s + b)
+                pos.append(static.marker(s + a)[:, None])
+    return MarkerTrial(tuple(names), np.concatenate(pos, axis=1), static.rate, static.time, static.source, static.extra)
+
+
+def _normal(surface, p):
+    V = np.asarray(surface.mesh.vertices, float)
+    N = np.asarray(surface.mesh.vertex_normals, float)
+    k = int(np.argmin(np.sum((V - p) ** 2, axis=1)))
+    return N[k] / np.linalg.norm(N[k])
+
+
+def _register_with_centre(seg, lm_bones, bone_names, marker_names, static_pos, surfaces, centre_mri, centre_lab,
+                          axis=None, virtual=None, fallback=()):
+    """Register one segment from its markers plus one joint centre known in both frames.
+
+    With ``axis = (point, direction)`` (scanner frame) the landmarks are first
+    projected onto that joint axis and pushed out along it: Plug-in-Gait
+    places the knee and ankle markers on the flexion / transmalleolar axis
+    at the epicondyle / malleolus, not on the bony prominence itself.
+    ``virtual``: {marker name: (scanner point, outward normal)} for markers
+    over a point that is not itself a landmark (TOE over the mid-point of the
+    first and fifth metatarsal heads).
+    ``fallback``: extra (name, mri point, mri cov, lab point, lab cov) pairs used
+    only when fewer than 3 correspondences are available (e.g. a Plug-in-Gait
+    marker set without medial knee/ankle markers: the distal joint centre of
+    Plug-in-Gait stands in, and the MRI estimates of that segment are then
+    not independent of the motion ones).
+    """
+    from .registration import MARKER_RADIUS, SKIN_THICKNESS, SKIN_THICKNESS_SD, register_landmarks
+
+    P, M, Cq, Cm, N, off, osd, names = [], [], [], [], [], [], [], []
+    for b in bone_names:
+        for n, lm in lm_bones.get(b, {}).get("landmarks", {}).items():
+            if n in marker_names and n in static_pos and b in surfaces:
+                p = np.asarray(lm["position"], float)
+                nrm = _normal(surfaces[b], p)
+                if axis is not None:
+                    c0, u = np.asarray(axis[0], float), np.asarray(axis[1], float) / np.linalg.norm(axis[1])
+                    p = c0 + np.dot(p - c0, u) * u
+                    nrm = u if np.dot(p - c0, u) > 0 else -u
+                P.append(p)
+                Cq.append(np.asarray(lm.get("cov", np.zeros((3, 3))), float).reshape(3, 3))
+                M.append(static_pos[n][0])
+                Cm.append(static_pos[n][1])
+                N.append(nrm)
+                off.append(SKIN_THICKNESS + MARKER_RADIUS)
+                osd.append(SKIN_THICKNESS_SD)
+                names.append(n)
+    for n, (p, nrm) in (virtual or {}).items():
+        if n in static_pos:
+            P.append(np.asarray(p, float))
+            Cq.append(np.zeros((3, 3)))
+            M.append(static_pos[n][0])
+            Cm.append(static_pos[n][1])
+            N.append(np.asarray(nrm, float))
+            off.append(SKIN_THICKNESS + MARKER_RADIUS)
+            osd.append(SKIN_THICKNESS_SD)
+            names.append(n)
+    if centre_mri is not None and centre_lab is not None:
+        P.append(np.asarray(centre_mri[0], float))
+        Cq.append(np.asarray(centre_mri[1], float))
+        M.append(np.asarray(centre_lab[0], float))
+        Cm.append(np.asarray(centre_lab[1], float))
+        N.append(np.array([0.0, 0.0, 1.0]))
+        off.append(0.0)
+        osd.append(0.0)
+        names.append("joint_centre")
+    for n, pm, cm, pl, cl in (fallback if len(P) < 3 else ()):
+        P.append(np.asarray(pm, float))
+        Cq.append(np.asarray(cm, float))
+        M.append(np.asarray(pl, float))
+        Cm.append(np.asarray(cl, float))
+        N.append(np.array([0.0, 0.0, 1.0]))
+        off.append(0.0)
+        osd.append(0.0)
+        names.append(n)
+    if len(P) < 3:
+        raise InputError(seg, f"only {len(P)} correspondences ({', '.join(names) or 'none'}) to register the segment")
+    return register_landmarks(np.array(P), np.array(M), np.array(Cq), np.array(Cm), np.array(N), np.array(off),
+                              offset_sd=np.array(osd), names=names, segment=seg)
+
+
+def _toe_landmark(calcn: dict, S: str) -> dict:
+    """Virtual TOE landmark: mid-point of the metatarsal heads (D1M, D5M), normal = the foot frame's up (Y) axis."""
+    lm, fr = calcn.get("landmarks", {}), calcn.get("frames", {})
+    if f"{S}D1M" not in lm or f"{S}D5M" not in lm or "foot" not in fr:
+        return {}
+    mid = 0.5 * (np.asarray(lm[f"{S}D1M"]["position"], float) + np.asarray(lm[f"{S}D5M"]["position"], float))
+    return {f"{S}TOE": (mid, np.asarray(fr["foot"]["rotation"], float)[:, 1])}
+
+
+def _joint_axis(joint: dict):
+    return np.asarray(joint["origin"], float), np.asarray(joint["rotation"], float)[:, 2]
+
+
+def _angle_deg(u, v) -> float:
+    c = abs(float(np.dot(u, v) / (np.linalg.norm(u) * np.linalg.norm(v))))
+    return float(np.degrees(np.arccos(min(1.0, c))))
+
+
+def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints_json: dict, say,
+                    dropped: dict | None = None) -> JointEstimates:
+    """MRI, motion and fused joint parameters per side (static lab frame); see the module docstring."""
+    from kinematics.pig import pelvis_frame
+
+    from .fusion import fuse_axis, fuse_gaussian
+    from .registration import register_segments, static_marker_positions
+
+    st = _aliased_static(inputs.static)
+    static_pos = static_marker_positions(st)
+    out = JointEstimates()
+    sac = 0.5 * (static_pos["RPSI"][0] + static_pos["LPSI"][0])
+    pf = pelvis_frame(static_pos["RASI"][0][None], static_pos["LASI"][0][None], sac[None])
+    out.pelvis = (pf.origin[0], pf.axes[0])
+    say("registering the pelvis")
+    regs = register_segments(lm_json, st, sides=inputs.sides, segments=("pelvis",),
+                             surfaces={k: v.mesh for k, v in surfaces.items()})
+    if "pelvis" not in regs:
+        raise InputError(inputs.static.source, "the pelvis could not be registered (needs RASI, LASI, RPSI, LPSI in MRI and markers)")
+    out.registrations["pelvis"] = regs["pelvis"]
+    bones = lm_json["bones"]
+    dynamic = [t for k, t in sorted(inputs.trials.items()) if k != inputs.functional and not k.startswith("functional")]
+    if not dynamic:
+        dynamic = list(inputs.trials.values())
+    functional = inputs.trials[inputs.functional] if inputs.functional else None
+    rec_static = _pig_static(inputs)
+    for s in inputs.sides:
+        S = s.upper()
+        c, a = {}, {}
+        j = joints_json
+        # ---- hip
+        for jn in ("hip", "knee", "ankle"):
+            if f"{jn}_{s}" not in j:
+                why = (dropped or {}).get(f"{jn}_{s}", "not detected")
+                raise InputError(inputs.bones, f"no {jn}_{s} joint from the MRI bones ({why})")
+        h_mri = regs["pelvis"].transfer_point(j[f"hip_{s}"]["origin"], j[f"hip_{s}"]["origin_cov"])
+        say(f"hip {S}: functional centre")
+        try:
+            trial = functional if functional is not None else dynamic[0]
+            x, C, _ = motion_hip(inputs.static, trial, s, out.pelvis[1])
+            out.sources[f"hip_{s}_motion"] = f"SCoRE on {Path(trial.source).name}" + (
+                "" if functional is not None else " (no functional trial)")
+        except (InputError, FitError) as exc:
+            x = np.median(rec_static.centres[f"hip_{s}"], axis=0)
+            C = DAVIS_HIP_SD**2 * np.eye(3)
+            out.sources[f"hip_{s}_motion"] = "Plug-in-Gait (Davis) regression of the static trial"
+            out.notes.append(f"hip {S}: no functional hip centre ({exc}); Plug-in-Gait regression used")
+        hf = fuse_gaussian([h_mri, (x, C)], ("mri", "motion"))
+        c["hip"] = {"mri": h_mri, "motion": (x, C), "fused": hf}
+        # ---- femur registration: epicondyle markers + the fused hip centre
+        k_pig = (np.median(rec_static.centres[f"knee_{s}"], axis=0), PIG_CENTRE_SD**2 * np.eye(3))
+        a_pig = (np.median(rec_static.centres[f"ankle_{s}"], axis=0), PIG_CENTRE_SD**2 * np.eye(3))
+        reg_f = _register_with_centre(f"femur_{s}", bones, [f"femur_{s}"], (f"{S}KNE", f"{S}MFC", f"{S}TRO"), static_pos,
+                                      surfaces, (j[f"hip_{s}"]["origin"], j[f"hip_{s}"]["origin_cov"]), (hf.mean, hf.cov),
+                                      axis=_joint_axis(j[f"knee_{s}"]),
+                                      fallback=[("pig_knee_centre", j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"], *k_pig)])
+        out.registrations[f"femur_{s}"] = reg_f
+        k_mri = reg_f.transfer_point(j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"])
+        ku, ksd, _ = reg_f.transfer_direction(np.asarray(j[f"knee_{s}"]["rotation"])[:, 2], j[f"knee_{s}"]["axis_sd_deg"])
+        say(f"knee {S}: functional axis")
+        try:
+            kd, kdsd, kp, kpc = motion_knee_axis(inputs.static, dynamic, s)
+            out.sources[f"knee_axis_{s}_motion"] = "SARA (thigh and shank clusters) on " + ", ".join(
+                Path(t.source).name for t in dynamic)
+        except (InputError, FitError) as exc:
+            kd, kdsd = rec_static.segments[f"femur_{s}"].axes[0][:, 1], PIG_KNEE_AXIS_SD_DEG
+            out.sources[f"knee_axis_{s}_motion"] = "Plug-in-Gait femur y axis of the static trial"
+            out.notes.append(f"knee {S}: no functional knee axis ({exc}); Plug-in-Gait axis used")
+        kfa = fuse_axis([ku, kd], [ksd, kdsd], ("mri", "motion"))
+        a["knee"] = {"mri": (ku, ksd), "motion": (kd, kdsd), "fused": kfa}
+        kf = fuse_gaussian([k_mri, k_pig], ("mri", "motion"))
+        c["knee"] = {"mri": k_mri, "motion": k_pig, "fused": kf}
+        # ---- shank registration: malleolar markers + the fused knee centre
+        reg_t = _register_with_centre(f"tibia_{s}", bones, [f"tibia_{s}", f"fibula_{s}"],
+                                      (f"{S}ANK", f"{S}MMA", f"{S}TTB", f"{S}HFB"), static_pos, surfaces,
+                                      (j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"]), (kf.mean, kf.cov),
+                                      axis=_joint_axis(j[f"ankle_{s}"]),
+                                      fallback=[("pig_ankle_centre", j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"], *a_pig)])
+        out.registrations[f"tibia_{s}"] = reg_t
+        for r in (reg_f, reg_t):
+            if any(n.startswith("pig_") for n in r.names):
+                out.notes.append(f"{r.segment}: fewer than 3 landmark/marker correspondences; registered with the Plug-in-Gait joint "
+                                 "centre (MRI and motion estimates of this segment are correlated)")
+        a_mri = reg_t.transfer_point(j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"])
+        au, asd, _ = reg_t.transfer_direction(np.asarray(j[f"ankle_{s}"]["rotation"])[:, 2], j[f"ankle_{s}"]["axis_sd_deg"])
+        af = fuse_gaussian([a_mri, a_pig], ("mri", "motion"))
+        c["ankle"] = {"mri": a_mri, "motion": a_pig, "fused": af}
+        if f"{S}ANKM" in static_pos:
+            ad = static_pos[f"{S}ANK"][0] - static_pos[f"{S}ANKM"][0]
+            out.sources[f"ankle_axis_{s}_motion"] = "transmalleolar axis ANK - ANKM of the static trial"
+        else:
+            ad = rec_static.segments[f"tibia_torsioned_{s}"].axes[0][:, 1]
+            out.sources[f"ankle_axis_{s}_motion"] = "Plug-in-Gait torsioned tibia y axis (tibial torsion from subject.json)"
+        aaf = fuse_axis([au, ad], [asd, MOTION_ANKLE_AXIS_SD_DEG], ("mri", "motion"))
+        a["ankle"] = {"mri": (au, asd), "motion": (ad, MOTION_ANKLE_AXIS_SD_DEG), "fused": aaf}
+        # ---- foot: heel and toe markers + the fused ankle centre (else the shank's registration)
+        pts = {}
+        try:
+            reg_c = _register_with_centre(f"calcn_{s}", bones, [f"calcn_{s}", f"talus_{s}", f"toes_{s}"],
+                                          (f"{S}HEE", f"{S}D1M", f"{S}D5M"), static_pos, surfaces,
+                                          (j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"]), (af.mean, af.cov),
+                                          virtual=_toe_landmark(bones.get(f"calcn_{s}", {}), S))
+        except (InputError, FitError) as exc:
+            reg_c = reg_t
+            out.notes.append(f"foot {S}: registered with the shank ({exc})")
+        out.registrations[f"calcn_{s}"] = reg_c
+        for jn in ("subtalar", "mtp"):
+            if f"{jn}_{s}" in j:
+                o, _ = reg_c.transfer_point(j[f"{jn}_{s}"]["origin"])
+                u, _, _ = reg_c.transfer_direction(np.asarray(j[f"{jn}_{s}"]["rotation"])[:, 2])
+                pts[jn] = (o, u)
+                out.sources[f"{jn}_{s}"] = "MRI"
+        hee, toe = static_pos[f"{S}HEE"][0], static_pos[f"{S}TOE"][0]
+        fwd = toe - hee
+        fwd[2] = 0.0
+        fwd /= np.linalg.norm(fwd)
+        left = np.cross([0.0, 0.0, 1.0], fwd)
+        med = left if s == "r" else -left
+        if "subtalar" not in pts:
+            up_deg, med_deg = np.radians(SUBTALAR_DEFAULT)
+            d = np.cos(up_deg) * (np.cos(med_deg) * fwd + np.sin(med_deg) * med) + np.sin(up_deg) * np.array([0.0, 0.0, 1.0])
+            pts["subtalar"] = (af.mean + np.array([0.0, 0.0, -0.03]), d)
+            out.sources[f"subtalar_{s}"] = "default axis (Inman 1976: 42 deg up, 23 deg medial), 3 cm below the ankle centre"
+        if "mtp" not in pts:
+            pts["mtp"] = (toe - 0.01 * fwd + np.array([0.0, 0.0, -0.02]), left)
+            out.sources[f"mtp_{s}"] = "default: medio-lateral axis under the TOE marker"
+        out.centres[s], out.axes[s], out.points[s] = c, a, pts
+    return out
+
+
+def _pig_static(inputs: SubjectInputs):
+    """Plug-in-Gait reconstruction of the static trial (knee and ankle centres, torsioned tibia)."""
+    from kinematics.reconstruction import reconstruct
+
+    return reconstruct(inputs.static, "pig", static=inputs.static, subject=inputs.subject, check_static=False)
+
+
+# --------------------------------------------------------------------------- truth
+def truth_in_static_lab(inputs: SubjectInputs) -> dict | None:
+    """Phantom truth (joint centres, knee/ankle axes) in the static lab frame, or None.
+
+    The scanner -> lab map is the rigid fit (Kabsch) of truth.json's hip,
+    knee and ankle joint origins onto the true static centres of
+    ``truth/static_centres.trc`` (median over frames); its rms is returned.
+    """
+    from kinematics.storage import read_trc
+
+    tr = inputs.truth
+    path = inputs.folder / "truth" / "static_centres.trc"
+    if tr is None or not path.is_file() or "joints" not in tr:
+        return None
+    cen = read_trc(path)
+    names = {"hip_r": "RHJC", "hip_l": "LHJC", "knee_r": "RKJC", "knee_l": "LKJC", "ankle_r": "RAJC", "ankle_l": "LAJC"}
+    J = tr["joints"]["joints"]
+    P, Q = [], []
+    for k, m in names.items():
+        if k in J and m in cen.names:
+            P.append(J[k]["origin"])
+            Q.append(np.nanmedian(cen.marker(m), axis=0))
+    if len(P) < 3:
+        return None
+    P, Q = np.array(P, float), np.array(Q, float)
+    pc, qc = P.mean(0), Q.mean(0)
+    U, _, Vt = np.linalg.svd((P - pc).T @ (Q - qc))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    t = qc - R @ pc
+    rms = float(np.sqrt(np.mean(np.sum((P @ R.T + t - Q) ** 2, axis=1))))
+    out = {"rms_m": rms, "centres": {}, "axes": {}}
+    for k, v in J.items():
+        out["centres"][k] = R @ np.asarray(v["origin"], float) + t
+        out["axes"][k] = R @ np.asarray(v["rotation"], float)[:, 2]
+    return out
+
+
+def errors_against_truth(est: JointEstimates, truth: dict) -> dict:
+    """Per side and source: hip/knee/ankle centre errors (mm) and knee/ankle axis errors (deg), plus the worst side."""
+    per_side = {}
+    for s in est.centres:
+        row = {}
+        for jn in ("hip", "knee", "ankle"):
+            t = truth["centres"].get(f"{jn}_{s}")
+            if t is None:
+                continue
+            e = est.centres[s][jn]
+            row[f"{jn}_centre_mm"] = {"mri": 1e3 * float(np.linalg.norm(e["mri"][0] - t)),
+                                      "motion": 1e3 * float(np.linalg.norm(e["motion"][0] - t)),
+                                      "fused": 1e3 * float(np.linalg.norm(e["fused"].mean - t))}
+        for jn in ("knee", "ankle"):
+            t = truth["axes"].get(f"{jn}_{s}")
+            if t is None:
+                continue
+            e = est.axes[s][jn]
+            row[f"{jn}_axis_deg"] = {"mri": _angle_deg(e["mri"][0], t), "motion": _angle_deg(e["motion"][0], t),
+                                     "fused": _angle_deg(e["fused"].direction, t)}
+        per_side[s] = row
+    worst = {}
+    for key in ("hip_centre_mm", "knee_centre_mm", "ankle_centre_mm", "knee_axis_deg", "ankle_axis_deg"):
+        rows = [r[key] for r in per_side.values() if key in r]
+        if rows:
+            worst[key] = {src: max(r[src] for r in rows) for src in ("mri", "motion", "fused")}
+    return {"worst": worst, "per_side": per_side}
+
+
+# --------------------------------------------------------------------------- model
+def _subject_parameters(inputs: SubjectInputs, est: JointEstimates, static_pos: dict):
+    from .model_builder import SideParameters, SubjectParameters
+
+    sides = {}
+    for s in inputs.sides:
+        c, a, p = est.centres[s], est.axes[s], est.points[s]
+        sides[s] = SideParameters(
+            hip=c["hip"]["fused"].mean, knee=c["knee"]["fused"].mean, knee_axis=a["knee"]["fused"].direction,
+            ankle=c["ankle"]["fused"].mean, ankle_axis=a["ankle"]["fused"].direction,
+            subtalar=p["subtalar"][0], subtalar_axis=p["subtalar"][1], mtp=p["mtp"][0], mtp_axis=p["mtp"][1])
+    subj = inputs.subject
+    mass = float(subj.mass) if subj.mass else 70.0
+    height = float(subj.height) if subj.height else 1.75
+    sources = {"hip centres": "fused: MRI (pelvis registration) x motion (hip_<side>_motion)",
+               "knee centres": "fused: MRI (femur registration) x Plug-in-Gait static",
+               "knee axes": "fused: MRI (femur registration) x motion (knee_axis_<side>_motion)",
+               "ankle centres": "fused: MRI (shank registration) x Plug-in-Gait static",
+               "ankle axes": "fused: MRI (shank registration) x motion (ankle_axis_<side>_motion)",
+               "knee law": "default (model_builder.DEFAULT_KNEE_SLOPES); not fitted",
+               "markers": "median static-trial positions",
+               "mass": "subject.json" if subj.mass else "70 kg default (subject.json has no mass)"}
+    sources.update({k: v for k, v in est.sources.items()})
+    return SubjectParameters(est.pelvis[0], est.pelvis[1], sides, {n: v[0] for n, v in static_pos.items()},
+                             mass, height, sources, name=inputs.folder.name or "subject")
+
+
+#: plausible knee-law flexion slopes (m/rad): anterior roll-back of the tibia 0-8 mm/rad, sinking 0-5 mm/rad
+#: (the ranges the literature reports for healthy knees); any slope above 10 mm/rad is implausible
+KNEE_LAW_LIMITS = {"tx_flexion": (0.0, 0.008), "ty_flexion": (-0.005, 0.0005), "any": 0.010}
+
+
+def fit_knee_laws(pm, trials: list, say=lambda m: None) -> dict:
+    """Knee laws fitted from IK with free knee translations, or the default law.
+
+    Model: the personalised model without its knee couplings (translations
+    free within +-3 cm); IK of `trials`; then per side the least-squares law
+    t = c_flex flexion + c_0 (`kinematics.correlative.fit_law`).
+    Skin markers move over the bones by more than the knee translations, so a
+    fitted law is kept only when its slopes are physiological
+    (`KNEE_LAW_LIMITS`); otherwise the default law is used.  Only the
+    flexion slopes are fitted (the ab/adduction and rotation excursions of
+    gait and crouching are a few degrees: their slopes would be noise).
+
+    Returns
+    -------
+    dict side -> (CorrelativeLaw, provenance text)
+    """
+    from kinematics.correlative import CorrelativeLaw, fit_law
+    from kinematics.ik import solve_ik
+
+    from .model_builder import default_knee_law
+
+    free = pm.model.with_couplings(None)
+    sides = list(pm.knee_laws)
+    A = {s: [] for s in sides}
+    D = {s: [] for s in sides}
+    for t in trials:
+        say(f"knee law: IK with free knee translations on {Path(t.source).name}")
+        r = solve_ik(free, t, block=IK_BLOCK)
+        for s in sides:
+            A[s].append(r.q[:, [free.coordinate_index(f"knee_{n}_{s}") for n in ("flexion", "adduction", "rotation")]])
+            D[s].append(r.q[:, [free.coordinate_index(f"knee_{n}_{s}") for n in ("tx", "ty", "tz")]])
+    out = {}
+    for s in sides:
+        default = default_knee_law(s)
+        if not trials:
+            out[s] = (default, "default law (no dynamic trial)")
+            continue
+        try:
+            fit = fit_law(np.concatenate(A[s])[:, :1], np.concatenate(D[s]), default.independent[:1], default.dependent,
+                          joint=f"knee_{s}")
+        except (InputError, FitError) as exc:
+            out[s] = (default, f"default law (fit failed: {exc})")
+            continue
+        sl = fit.slopes[:, 0]
+        lim = KNEE_LAW_LIMITS
+        ok = (lim["tx_flexion"][0] <= sl[0] <= lim["tx_flexion"][1] and lim["ty_flexion"][0] <= sl[1] <= lim["ty_flexion"][1]
+              and np.all(np.abs(sl) <= lim["any"]))
+        text = "tx {:+.1f}, ty {:+.1f}, tz {:+.1f} mm/rad of flexion".format(*(1e3 * sl))
+        if ok:
+            # flexion slopes fitted; ab/adduction and rotation excursions in gait are too small to fit theirs;
+            # zero translation in the static pose (the model's knee centre is the fused one)
+            coef = np.column_stack([sl, default.slopes[:, 1:], np.zeros(3)])
+            law = CorrelativeLaw(joint=default.joint, independent=default.independent, dependent=default.dependent,
+                                 coefficients=coef, independent_units=default.independent_units,
+                                 dependent_units=default.dependent_units)
+            out[s] = (law, f"flexion slopes fitted from IK with free knee translations ({text}); "
+                           "ab/adduction and rotation slopes default")
+        else:
+            out[s] = (default, f"default law: the fitted slopes are not physiological ({text}; soft-tissue artefact)")
+    return out
+
+
+def _bone_meshes_lab(surfaces: dict, est: JointEstimates, sides) -> dict:
+    """Bone meshes moved into the static lab frame by their segment's registration: bone -> (mesh, body)."""
+    seg_of = {"pelvis": ("pelvis", "pelvis")}
+    for s in sides:
+        seg_of.update({f"femur_{s}": (f"femur_{s}", f"femur_{s}"), f"patella_{s}": (f"femur_{s}", f"femur_{s}"),
+                       f"tibia_{s}": (f"tibia_{s}", f"tibia_{s}"), f"fibula_{s}": (f"tibia_{s}", f"tibia_{s}"),
+                       f"talus_{s}": (f"calcn_{s}", f"talus_{s}"), f"calcn_{s}": (f"calcn_{s}", f"calcn_{s}"),
+                       f"toes_{s}": (f"calcn_{s}", f"toes_{s}")})
+    out = {}
+    for bone, surf in surfaces.items():
+        if bone not in seg_of or seg_of[bone][0] not in est.registrations:
+            continue
+        reg = est.registrations[seg_of[bone][0]]
+        m = surf.mesh.copy()
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = reg.R, reg.t
+        m.apply_transform(T)
+        out[bone] = (m, seg_of[bone][1])
+    return out
+
+
+# --------------------------------------------------------------------------- report
+def _report(path: Path, summary: dict, est: JointEstimates, ik: dict, ls, surfaces: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .report import Figure, Section, Table, render_report
+
+    rows = []
+    for s in est.centres:
+        for jn, e in est.centres[s].items():
+            for src in ("mri", "motion"):
+                x, C = e[src]
+                rows.append([f"{jn}_{s} centre", src, *(1e3 * np.asarray(x)).round(1).tolist(),
+                             float(1e3 * np.sqrt(np.trace(C) / 3)), ""])
+            f = e["fused"]
+            rows.append([f"{jn}_{s} centre", "fused", *(1e3 * f.mean).round(1).tolist(), float(1e3 * np.sqrt(np.trace(f.cov) / 3)),
+                         f"mri {f.shares[0]:.2f} / motion {f.shares[1]:.2f}; chi2 p={f.p_value:.2g}"])
+    t_centres = Table(["joint", "source", "x (mm)", "y (mm)", "z (mm)", "sd (mm)", "weights"], rows,
+                      caption="Joint centres, static-trial lab frame (X forward, Y left, Z up)")
+    arows = []
+    for s in est.axes:
+        for jn, e in est.axes[s].items():
+            for src in ("mri", "motion"):
+                u, sd = e[src]
+                u = np.asarray(u) / np.linalg.norm(u)
+                arows.append([f"{jn}_{s} axis", src, *u.round(4).tolist(), float(sd), ""])
+            f = e["fused"]
+            arows.append([f"{jn}_{s} axis", "fused", *f.direction.round(4).tolist(), float(f.sd_deg),
+                          f"mri {f.shares[0]:.2f} / motion {f.shares[1]:.2f}"])
+    t_axes = Table(["axis", "source", "x", "y", "z", "sd (deg)", "weights"], arows, caption="Joint axes (unit vectors, static lab frame)")
+    sections = [Section("Subject", [f"Folder: {summary['subject_dir']}", f"Sides: {', '.join(summary['sides'])}",
+                                    f"Trials: {', '.join(summary['trials'])}"] + list(summary.get("notes", [])))]
+    sections.append(Section("Per-joint estimates: MRI, motion and fused", [t_centres, t_axes]))
+    if "errors" in summary:
+        er = [[k, *(round(v[s], 2) for s in ("mri", "motion", "fused"))] for k, v in summary["errors"].items()]
+        sections.append(Section("Errors against the phantom truth (worst side)",
+                                [Table(["quantity", "MRI", "motion", "fused"], er)]))
+    reg_rows = [[k, r.rms * 1e3, float(np.max(r.rotation_sd_deg)), ", ".join(r.names), ", ".join(r.rejected) or "-"]
+                for k, r in est.registrations.items()]
+    sections.append(Section("Registration (MRI -> static markers)",
+                            [Table(["segment", "rms (mm)", "max rotation sd (deg)", "used", "rejected"], reg_rows)]))
+    ik_rows = [[k, v["rms_mean_mm"], v["rms_max_mm"], v["frames"], v["worst_marker"]] for k, v in summary["ik"].items()]
+    items = [Table(["trial", "mean RMS (mm)", "max RMS (mm)", "frames", "worst marker (mean error)"], ik_rows,
+                   caption="Marker residuals of the personalised model's IK")]
+    name = next((k for k in ik if k.startswith("gait")), next((k for k in ik if k != "static"), next(iter(ik))))
+    res = ik[name]
+    fig, axs = plt.subplots(1, 3, figsize=(12, 3.2))
+    for ax, jn in zip(axs, ("hip_flexion", "knee_flexion", "ankle_angle")):
+        for s in est.centres:
+            c = f"{jn}_{s}"
+            if c in res.coordinates:
+                ax.plot(res.time, np.degrees(res.q[:, res.coordinates.index(c)]), label=s)
+        ax.set_title(jn)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("deg (0 = static pose)")
+        ax.legend()
+    fig.tight_layout()
+    items.append(Figure(fig, caption=f"{name}: joint angles of the personalised model"))
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(12, 3.2))
+    me = np.nanmean(res.marker_errors, axis=0) * 1e3
+    ax.bar(np.arange(len(me)), me)
+    ax.set_xticks(np.arange(len(me)), res.markers, rotation=90, fontsize=7)
+    ax.set_ylabel("mean error (mm)")
+    fig.tight_layout()
+    items.append(Figure(fig, caption=f"{name}: mean marker residual per marker (soft-tissue artefact and noise)"))
+    plt.close(fig)
+    sections.append(Section("Inverse kinematics", items))
+    pics = []
+    from .landmarks.plot import plot_bone
+
+    for bone in ("pelvis", "femur_r", "tibia_r", "femur_l"):
+        if bone in surfaces and bone in ls.bones:
+            tmp = path.parent / f".{bone}_landmarks.png"
+            plot_bone(surfaces[bone].mesh, ls.bones[bone], tmp)
+            pics.append(Figure(tmp.read_bytes(), caption=f"{bone}: surface and detected landmarks (scanner frame, mm)"))
+            tmp.unlink()
+    if pics:
+        sections.append(Section("Bones and landmarks", pics))
+    render_report(path, f"Personalised model: {summary['subject']}", sections,
+                  meta="units: m, mm in tables as stated; frame: lab of the static trial")
+
+
+# --------------------------------------------------------------------------- main
+def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
+                progress: Callable[[str], None] | None = None, report: bool = True) -> dict:
+    """Run the whole pipeline on one subject folder; outputs are staged into `out`.
+
+    Parameters
+    ----------
+    subject_dir : folder (see the module docstring; a `personalize phantom` folder is valid)
+    out : output folder (published only when everything succeeded)
+    seed : seeds the point sampling of the surfaces (the run is deterministic)
+    progress : callable(str), called at each stage
+    report : write report.html
+
+    Returns
+    -------
+    dict, the content of ``summary.json``
+
+    Raises
+    ------
+    InputError : bad subject folder (one line naming the file and the problem)
+    """
+    from kinematics.ik import solve_ik
+    from kinematics.storage import write_mot, write_sto
+
+    from .frames import joints_from_landmarks
+    from .landmarks import detect_landmarks
+    from .model_builder import build_personal_model, save_model_json, save_model_osim, write_meshes
+    from .registration import static_marker_positions
+    from .surfaces import load_bones
+
+    say = progress or (lambda m: None)
+    say("reading inputs")
+    inputs = find_inputs(subject_dir)
+    say(f"bone surfaces from {inputs.bones.name}")
+    surfaces = load_bones(inputs.bones, inputs.label_map, seed=seed, progress=lambda b: say(f"surface {b}"))
+    bone_sides = {s for s in ("r", "l") if f"femur_{s}" in surfaces and f"tibia_{s}" in surfaces}
+    if "pelvis" not in surfaces:
+        raise InputError(inputs.bones, "no pelvis among the bones: the hip centres cannot be registered")
+    sides = tuple(s for s in inputs.sides if s in bone_sides)
+    if not sides:
+        raise InputError(inputs.folder, f"the bones are of side(s) {', '.join(sorted(bone_sides)) or 'none'} but the markers "
+                                        f"of side(s) {', '.join(inputs.sides)}: no side with both femur/tibia and markers")
+    inputs = SubjectInputs(**{**inputs.__dict__, "sides": sides})
+    say("detecting landmarks")
+    ls = detect_landmarks(surfaces, progress=lambda b: say(f"landmarks {b}"))
+    joints, dropped = joints_from_landmarks(ls)
+    lm_json = ls.to_json()
+    j_json = {k: v.to_json() for k, v in joints.items()}
+    est = estimate_joints(inputs, surfaces, lm_json, j_json, say, dropped)
+    static_pos = static_marker_positions(inputs.static)
+    say("building the model")
+    params = _subject_parameters(inputs, est, static_pos)
+    pm = build_personal_model(params)
+    dyn = [t for k, t in sorted(inputs.trials.items()) if not k.startswith("functional")]
+    laws = fit_knee_laws(pm, dyn, say)
+    sources = dict(params.sources)
+    sources.pop("knee law", None)
+    for s_, (law, text) in laws.items():
+        sources[f"knee_law_{s_}"] = text
+    sides_p = {s_: replace(sp, knee_law=laws[s_][0]) for s_, sp in params.sides.items()}
+    pm = build_personal_model(replace(params, sides=sides_p, sources=sources))
+    truth = truth_in_static_lab(inputs)
+    summary: dict = {"subject": inputs.folder.name, "subject_dir": str(inputs.folder), "sides": list(sides),
+                     "units": {"centres": "m (mm where named *_mm)", "axes": "unit vectors", "angles": "deg where named *_deg",
+                               "ik_rms_mm": "largest over the dynamic trials of the mean per-frame RMS marker error, mm",
+                               "errors": "worst side; *_mm Euclidean distance, *_deg angle between axes (sign-free)"},
+                     "frame": "lab frame of the static trial (X forward, Y left, Z up)",
+                     "trials": sorted(inputs.trials), "functional_trial": inputs.functional,
+                     "dropped_joints": dropped, "notes": list(est.notes) + [
+                         f"landmarks of {b}: {', '.join(r.flags)} ({'; '.join(r.notes) or 'see landmarks.json'})"
+                         for b, r in ls.bones.items() if r.flags],
+                     "sources": pm.parameters.sources}
+    est_json = {}
+    for s in sides:
+        for jn, e in est.centres[s].items():
+            est_json[f"{jn}_{s}_centre"] = {src: np.asarray(e[src][0]).tolist() for src in ("mri", "motion")}
+            est_json[f"{jn}_{s}_centre"]["fused"] = e["fused"].summary()
+        for jn, e in est.axes[s].items():
+            est_json[f"{jn}_{s}_axis"] = {src: {"direction": np.asarray(e[src][0]).tolist(), "sd_deg": float(e[src][1])}
+                                          for src in ("mri", "motion")}
+            f = e["fused"]
+            est_json[f"{jn}_{s}_axis"]["fused"] = {"direction": f.direction.tolist(), "sd_deg": f.sd_deg,
+                                                   "weights": dict(zip(f.names, f.shares.tolist())), "p_value": f.p_value}
+    summary["estimates"] = est_json
+    summary["registration"] = {k: {"rms_mm": r.rms * 1e3, "used": list(r.names), "rejected": list(r.rejected)}
+                               for k, r in est.registrations.items()}
+    with staged_dir(out) as stage:
+        write_text(inside(stage, "landmarks.json"), json.dumps(lm_json, indent=1) + "\n")
+        write_text(inside(stage, "joints.json"), json.dumps({"units": "m", "frame": "input (scanner)", "joints": j_json,
+                                                              "dropped": dropped}, indent=1) + "\n")
+        say("writing meshes and model")
+        mesh_files = write_meshes(pm, _bone_meshes_lab(surfaces, est, sides), inside(stage, "meshes"))
+        save_model_json(pm, inside(stage, "model.json"), mesh_files)
+        save_model_osim(pm, inside(stage, "model.osim"), mesh_files)
+        ik_results, ik_summary = {}, {}
+        rot = [c.name for c in pm.model.coordinates if c.kind == "rotational"]
+        for name in ["static"] + sorted(inputs.trials):
+            trial = inputs.static if name == "static" else inputs.trials[name]
+            say(f"IK {name}")
+            res = solve_ik(pm.model, trial, block=IK_BLOCK)
+            ik_results[name] = res
+            write_mot(inside(stage, f"kinematics/{name}.mot"), pm.model.coordinate_names, res.time, res.q, rotational=rot,
+                      name=f"IK {name}")
+            write_sto(inside(stage, f"kinematics/{name}_marker_errors.sto"), list(res.markers), res.time, res.marker_errors,
+                      header_extra=["marker errors |model - measured|, m"], name="MarkerErrors")
+            me = np.nanmean(res.marker_errors, axis=0)
+            ik_summary[name] = {"rms_mean_mm": float(np.nanmean(res.rms) * 1e3), "rms_max_mm": float(np.nanmax(res.rms) * 1e3),
+                                "frames": int(res.q.shape[0]),
+                                "worst_marker": f"{res.markers[int(np.nanargmax(me))]} {np.nanmax(me) * 1e3:.1f} mm"}
+        summary["ik"] = ik_summary
+        dyn = [v["rms_mean_mm"] for k, v in ik_summary.items() if k != "static"]
+        summary["ik_rms_mm"] = float(max(dyn)) if dyn else ik_summary["static"]["rms_mean_mm"]
+        if truth is not None:
+            err = errors_against_truth(est, truth)
+            summary["errors"] = {k: err["worst"][k] for k in ("hip_centre_mm", "knee_axis_deg", "ankle_axis_deg",
+                                                               "knee_centre_mm", "ankle_centre_mm") if k in err["worst"]}
+            summary["errors_per_side"] = err["per_side"]
+            summary["truth_frame"] = {"scanner_to_static_lab_rms_m": truth["rms_m"],
+                                      "method": "Kabsch fit of truth.json joint origins to truth/static_centres.trc"}
+        if report:
+            say("writing report.html")
+            _report(inside(stage, "report.html"), summary, est, ik_results, ls, surfaces)
+        write_text(inside(stage, "summary.json"), json.dumps(summary, indent=1, default=float) + "\n")
+    return summary
+
+
+# --------------------------------------------------------------------------- phantom subjects
+#: trial options of a small phantom subject (tests, demo): one gait cycle, one crouch, a short star-arc
+SHORT_TRIALS = dict(gait_trials=1, gait_cycles=1.0, crouch_angles=(0,), crouch_duration=2.0, functional_ranges=(45,),
+                    functional_time_scale=0.5, static_duration=0.5)
+
+
+def write_phantom_subject(out: str | Path, seed: int = 0, *, voxel_mm: float = 2.0, short: bool = True,
+                          bones=None, progress: Callable[[str], None] | None = None) -> Path:
+    """Write a phantom SUBJECT_DIR (labels.nii.gz, label_map.json, C3D trials, subject.json, truth.json, truth/).
+
+    The same content as ``personalize phantom`` plus its motion trials, without the
+    exact reference meshes (the pipeline does not read them).  `bones` restricts
+    the labelled bones (e.g. one side only).  Staged: published only when complete.
+    """
+    from phantoms import make_phantom
+    from phantoms.imaging import label_volume, write_label_nifti
+    from phantoms.motion import write_trials
+
+    say = progress or (lambda m: None)
+    ph = make_phantom(seed=seed)
+    voxel = (voxel_mm * 1e-3,) * 3
+    with staged_dir(out) as stage:
+        say(f"phantom {seed}: label volume ({voxel_mm:g} mm)")
+        labels, affine, lmap = label_volume(ph, voxel=voxel, seed=seed, bones=bones)
+        write_label_nifti(inside(stage, "labels.nii.gz"), labels, affine)
+        write_text(inside(stage, "label_map.json"), json.dumps(lmap, indent=1) + "\n")
+        say(f"phantom {seed}: motion trials")
+        truth = ph.truth()
+        truth["image"] = {"file": "labels.nii.gz", "voxel_m": list(voxel), "noise": 0.0, "affine_units": "mm"}
+        truth.update(write_trials(stage, ph, seed, **(SHORT_TRIALS if short else {})))
+        write_text(inside(stage, "truth.json"), json.dumps(truth, indent=1) + "\n")
+    return Path(out)
