@@ -914,20 +914,11 @@ def write_phantom_subject(out: str | Path, seed: int = 0, *, voxel_mm: float = 2
     the labelled bones (e.g. one side only).  Staged: published only when complete.
     """
     from phantoms import make_phantom
-    from phantoms.imaging import label_volume, write_label_nifti
-    from phantoms.motion import write_trials
+    from phantoms.subject import write_subject
 
     say = progress or (lambda m: None)
-    ph = make_phantom(seed=seed)
-    voxel = (voxel_mm * 1e-3,) * 3
+    say(f"phantom {seed}: label volume ({voxel_mm:g} mm) and motion trials")
     with staged_dir(out) as stage:
-        say(f"phantom {seed}: label volume ({voxel_mm:g} mm)")
-        labels, affine, lmap = label_volume(ph, voxel=voxel, seed=seed, bones=bones)
-        write_label_nifti(inside(stage, "labels.nii.gz"), labels, affine)
-        write_text(inside(stage, "label_map.json"), json.dumps(lmap, indent=1) + "\n")
-        say(f"phantom {seed}: motion trials")
-        truth = ph.truth()
-        truth["image"] = {"file": "labels.nii.gz", "voxel_m": list(voxel), "noise": 0.0, "affine_units": "mm"}
-        truth.update(write_trials(stage, ph, seed, **(SHORT_TRIALS if short else {})))
-        write_text(inside(stage, "truth.json"), json.dumps(truth, indent=1) + "\n")
+        write_subject(stage, make_phantom(seed=seed), voxel=(voxel_mm * 1e-3,) * 3, seed=seed, bones=bones,
+                      trials=SHORT_TRIALS if short else None, meshes=False, progress=say)
     return Path(out)

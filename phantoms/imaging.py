@@ -283,10 +283,12 @@ def write_label_nifti(path: str | os.PathLike, labels: np.ndarray, affine_mm: np
 
 def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0,
                   seed: int = 0, fov=None, bones: Iterable[str] | None = None,
-                  progress: Callable[[str], None] | None = None, extra_truth: dict | None = None) -> dict[str, Path]:
+                  progress: Callable[[str], None] | None = None, extra_truth: dict | None = None,
+                  meshes: bool = True) -> dict[str, Path]:
     """Write ``labels.nii.gz``, ``label_map.json``, ``meshes/<bone>.ply`` (mm) and ``truth.json`` (m).
 
-    `extra_truth` entries (e.g. the motion phantom's knee laws) are merged into ``truth.json``.
+    `extra_truth` entries (e.g. the motion phantom's knee laws) are merged into ``truth.json``;
+    ``meshes=False`` skips the exact reference meshes (the pipeline does not read them).
 
     Returns the written paths by role.  Files are written atomically; use
     `kinematics.atomic.staged_dir` around this call to publish the folder at once.
@@ -298,7 +300,7 @@ def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e
                                              progress=(lambda b: progress(f"rasterising {b}")) if progress else None)
     paths = {"labels": write_label_nifti(inside(out, "labels.nii.gz"), labels, affine),
              "label_map": write_text(inside(out, "label_map.json"), json.dumps(label_map, indent=1) + "\n")}
-    for b in label_map:
+    for b in label_map if meshes else ():
         if progress:
             progress(f"meshing {b}")
         paths[f"mesh:{b}"] = write_ply_mm(
@@ -307,7 +309,8 @@ def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e
     truth = ph.truth()
     truth["image"] = {"file": "labels.nii.gz", "voxel_m": np.asarray(_check_voxel(voxel)).tolist(),
                       "noise": float(noise), "noise_seed": int(seed), "affine_units": "mm",
-                      "shape": list(labels.shape), "meshes": "meshes/<bone>.ply in mm, scanner frame"}
+                      "shape": list(labels.shape),
+                      "meshes": "meshes/<bone>.ply in mm, scanner frame" if meshes else None}
     truth.update(extra_truth or {})
     paths["truth"] = write_text(inside(out, "truth.json"), json.dumps(truth, indent=1) + "\n")
     return paths

@@ -17,7 +17,7 @@ from .imaging import write_phantom
 
 def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0,
                   seed: int = 0, motion: bool = True, trials: dict | None = None, fov=None,
-                  bones: Iterable[str] | None = None,
+                  bones: Iterable[str] | None = None, meshes: bool = True,
                   progress: Callable[[str], None] | None = None) -> dict[str, Path]:
     """Write a phantom subject folder into `out_dir` (stage it with `kinematics.atomic.staged_dir`).
 
@@ -30,7 +30,7 @@ def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3,
     seed : seeds the segmentation noise and the motion (soft-tissue artefact, marker noise, knee laws)
     motion : also write the motion trials (needs a two-legged phantom)
     trials : keyword arguments for `phantoms.motion.make_trials` (e.g. ``gait_trials=1``)
-    fov, bones, progress : as for `phantoms.imaging.write_phantom`
+    fov, bones, meshes, progress : as for `phantoms.imaging.write_phantom`
 
     Returns
     -------
@@ -44,7 +44,7 @@ def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3,
 
         extra = write_trials(out, ph, seed, progress=progress, **(trials or {}))
     paths = write_phantom(out, ph, voxel=voxel, noise=noise, seed=seed, fov=fov, bones=bones,
-                          progress=progress, extra_truth=extra)
+                          progress=progress, extra_truth=extra, meshes=meshes)
     if motion:
         paths["motion"] = out
     return paths
