@@ -51,7 +51,8 @@ def run_demo(out: str | Path, seed: int = 0, voxel_mm: float = 1.0,
     Parameters
     ----------
     out : path
-        Output folder; published only when the whole run succeeded.
+        Output folder: ``subject/`` (the phantom subject), ``model/`` (the pipeline's
+        results) and ``demo.json``, each published only when complete.
     seed : int
         Phantom seed (anatomy, placement).
     voxel_mm : float
@@ -63,38 +64,33 @@ def run_demo(out: str | Path, seed: int = 0, voxel_mm: float = 1.0,
         Short motion trials (one gait cycle, one crouch, a short star-arc).
     """
     from phantoms import make_phantom
-    from phantoms.imaging import write_phantom
+    from phantoms.subject import write_subject
 
+    from .pipeline import SHORT_TRIALS, run_subject
     from .surfaces import load_bones
 
     say = progress or (lambda msg: None)
-    voxel = (voxel_mm * 1e-3,) * 3
-    with staged_dir(out) as stage:
-        say(f"building phantom (seed {seed})")
-        ph = make_phantom(seed=seed)
-        subject = inside(stage, "subject")
-        write_phantom(subject, ph, voxel=voxel, seed=seed, progress=say)
-        say("extracting surfaces from labels.nii.gz")
-        surfaces = load_bones(subject / "labels.nii.gz", subject / "label_map.json", progress=lambda b: say(f"surface {b}"))
-        summary = {
-            "units": {"distance": "mm", "volume": "%"},
-            "seed": seed,
-            "voxel_mm": [voxel_mm] * 3,
-            "surfaces": surface_errors(ph, surfaces),
-        }
-        if pipeline:
-            from phantoms.motion import write_trials
-
-            from .pipeline import SHORT_TRIALS, run_subject
-
-            say("writing the motion trials")
-            truth = json.loads((subject / "truth.json").read_text(encoding="utf-8"))
-            truth.update(write_trials(subject, ph, seed, progress=lambda t: say(f"trial {t}"), **(SHORT_TRIALS if short else {})))
-            write_text(subject / "truth.json", json.dumps(truth, indent=1) + "\n")
-            res = run_subject(subject, inside(stage, "model"), seed=seed, progress=lambda m: say(f"pipeline: {m}"))
-            summary["pipeline"] = {"errors": res.get("errors", {}), "ik_rms_mm": res["ik_rms_mm"],
-                                   "frame": res["frame"], "ik": res["ik"], "sources": res["sources"]}
-        write_text(inside(stage, "demo.json"), json.dumps(summary, indent=1) + "\n")
+    out = Path(out)
+    say(f"building phantom (seed {seed})")
+    ph = make_phantom(seed=seed)
+    # the subject folder is published first so that the pipeline (and its report) see its final path
+    subject = inside(out, "subject")
+    with staged_dir(subject) as stage:
+        write_subject(stage, ph, voxel=(voxel_mm * 1e-3,) * 3, seed=seed, motion=pipeline,
+                      trials=SHORT_TRIALS if short else None, progress=say)
+    say("extracting surfaces from labels.nii.gz")
+    surfaces = load_bones(subject / "labels.nii.gz", subject / "label_map.json", progress=lambda b: say(f"surface {b}"))
+    summary = {
+        "units": {"distance": "mm", "volume": "%"},
+        "seed": seed,
+        "voxel_mm": [voxel_mm] * 3,
+        "surfaces": surface_errors(ph, surfaces),
+    }
+    if pipeline:
+        res = run_subject(subject, inside(out, "model"), seed=seed, progress=lambda m: say(f"pipeline: {m}"))
+        summary["pipeline"] = {"errors": res.get("errors", {}), "ik_rms_mm": res["ik_rms_mm"],
+                               "frame": res["frame"], "ik": res["ik"], "sources": res["sources"]}
+    write_text(inside(out, "demo.json"), json.dumps(summary, indent=1) + "\n")
     return summary
 
 
