@@ -37,7 +37,8 @@ onto the markers (weighted Kabsch through the root joint), keeping the lower
 cost, so that the subject's heading in the lab does not matter.  Finally a
 frame whose solution jumps away from a neighbour's (another local minimum,
 e.g. an angle 2 pi away) is re-solved from that neighbour, keeping the lower
-cost.
+cost, and the repair walks on frame by frame while it keeps finding a markedly
+lower minimum (warm starts chain a wrong minimum over the following frames).
 """
 from __future__ import annotations
 
@@ -615,17 +616,23 @@ def _feasible(z, A, bnd):
 
 
 def _solve_stream(problem: _Problem, z_start, Y, ok, tolerance, max_iterations, admit, lam0=1e-6, progress=None,
-                  admit_step=0.05):
+                  admit_step=None):
     """Pipelined Levenberg-Marquardt over consecutive frames.
 
     A window of frames is iterated together (one vectorised evaluation per
     iteration).  New frames (up to `admit` per iteration) enter once the last
-    frame of the window is nearly solved (its last step below `admit_step`),
-    started from that frame's iterate plus the velocity of the last solved
-    frames; converged frames leave.  Every frame thus starts next to an
-    almost-solved neighbour (warm start) while the per-evaluation overhead is
-    shared by the whole window.
+    frame of the window is nearly solved (its last step below `admit_step`,
+    default 10 x `tolerance`), started from that frame's iterate plus the
+    velocity of the last solved frames; converged frames leave.  Every frame
+    thus starts next to an almost-solved neighbour (warm start) while the
+    per-evaluation overhead is shared by the whole window.  The admission step
+    must be small: a start extrapolated from an iterate still moving (e.g.
+    0.05 rad from its optimum) lands, on nearly singular problems (hip and knee
+    rotation with Plug-in-Gait markers only), in another local minimum that
+    the warm starts then carry over the following frames.
     """
+    if admit_step is None:
+        admit_step = 10.0 * tolerance
     cmap = problem.cmap
     A, bnd = cmap.ineq_matrix, cmap.ineq_rhs
     F, nz = Y.shape[0], cmap.n_z
@@ -815,15 +822,20 @@ def _rigid_start(model: Model, q_default: np.ndarray, names, y, ok, w) -> np.nda
     return q
 
 
-def _repair_jumps(prob, Zs, its, conv, frames, Y, ok, tolerance, max_iterations, max_passes=3):
+def _repair_jumps(prob, Zs, its, conv, frames, Y, ok, tolerance, max_iterations, max_passes=3, sweep_gain=1e-3):
     """Re-solve frames whose solution jumps away from a neighbour's, keeping the lower cost.
 
-    A warm start far from the solution (fast motion, extrapolation) can land in
-    another local minimum, e.g. an angle 2 pi away that a coupling makes
-    distinct.  Each frame whose coordinates differ from a neighbour's by more
-    than max(0.1, 5 x the median inter-frame change) is solved again from that
-    neighbour; the result replaces it when its cost is lower.  Repeated
-    forwards and backwards so that runs of frames are repaired too.
+    A warm start far from the solution (fast motion, extrapolation, a nearly
+    singular problem such as hip and knee rotation with Plug-in-Gait markers
+    only) can land in another local minimum, e.g. an angle 2 pi away that a
+    coupling makes distinct.  Each frame whose coordinates differ from a
+    neighbour's by more than max(0.1, 5 x the median inter-frame change) is
+    solved again from that neighbour; the result replaces it when its cost is
+    lower.  While a replacement lowers the cost by more than `sweep_gain`
+    (relative: another minimum, not round-off), the repair walks on, re-solving
+    the next frame from the repaired one, because the warm starts chain the
+    wrong minimum over the whole run of frames that follows (or precedes) the
+    jump.  Repeated forwards and backwards.
     """
     if frames.size < 2:
         return
@@ -843,13 +855,20 @@ def _repair_jumps(prob, Zs, its, conv, frames, Y, ok, tolerance, max_iterations,
         changed = False
         for k in bad:
             for src, dst in ((k, k + 1), (k + 1, k)):
-                f = frames[dst]
-                zb, ib, cb, _, _ = _solve_block(prob, Zs[frames[src]][None], Y[f:f + 1], ok[f:f + 1], tolerance,
-                                                max_iterations, 1e-3)
-                cn = cost(np.array([f]), zb)[0]
-                if cn < c[dst] * (1 - 1e-9):
-                    Zs[f], its[f], conv[f], c[dst] = zb[0], its[f] + ib[0], cb[0], cn
+                step = dst - src
+                while 0 <= dst < frames.size:
+                    f = frames[dst]
+                    zb, ib, cb, _, _ = _solve_block(prob, Zs[frames[src]][None], Y[f:f + 1], ok[f:f + 1], tolerance,
+                                                    max_iterations, 1e-3)
+                    cn = cost(np.array([f]), zb)[0]
+                    if not cn < c[dst] * (1 - 1e-9):
+                        break
+                    Zs[f], its[f], conv[f] = zb[0], its[f] + ib[0], cb[0]
+                    gain, c[dst] = cn < c[dst] * (1 - sweep_gain), cn
                     changed = True
+                    if not gain:
+                        break
+                    src, dst = dst, dst + step
         if not changed:
             return
 

@@ -74,9 +74,6 @@ MOTION_HIP_SD = (0.006, 0.010, 0.016)
 MOTION_KNEE_AXIS_SD_DEG = 6.0
 MOTION_ANKLE_AXIS_SD_DEG = 6.0
 PIG_CENTRE_SD = 0.010
-#: frames admitted per iteration into the IK's pipelined window (`kinematics.ik.solve_ik` block): the
-#: default 16 lets sparse marker sets (Plug-in-Gait only) fall into a wrong minimum on fast star-arcs
-IK_BLOCK = 4
 #: fall-backs without functional data: Davis regression hip centre (errors ~1-3 cm, Leardini et al. 1999),
 #: Plug-in-Gait knee axis from the KNE/THI markers
 DAVIS_HIP_SD = 0.015
@@ -632,7 +629,7 @@ def fit_knee_laws(pm, trials: list, say=lambda m: None) -> dict:
     D = {s: [] for s in sides}
     for t in trials:
         say(f"knee law: IK with free knee translations on {Path(t.source).name}")
-        r = solve_ik(free, t, block=IK_BLOCK)
+        r = solve_ik(free, t)
         for s in sides:
             A[s].append(r.q[:, [free.coordinate_index(f"knee_{n}_{s}") for n in ("flexion", "adduction", "rotation")]])
             D[s].append(r.q[:, [free.coordinate_index(f"knee_{n}_{s}") for n in ("tx", "ty", "tz")]])
@@ -872,7 +869,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
         for name in ["static"] + sorted(inputs.trials):
             trial = inputs.static if name == "static" else inputs.trials[name]
             say(f"IK {name}")
-            res = solve_ik(pm.model, trial, block=IK_BLOCK)
+            res = solve_ik(pm.model, trial)
             ik_results[name] = res
             write_mot(inside(stage, f"kinematics/{name}.mot"), pm.model.coordinate_names, res.time, res.q, rotational=rot,
                       name=f"IK {name}")
