@@ -419,20 +419,37 @@ def plug_in_gait(trial: MarkerTrial, subject: SubjectMeasurements) -> PiGResult:
     PiGResult
     """
     segs, centres = _chain(trial, subject)
-    angles, notes = {}, []
     cov = _centre_covariance(trial, subject, centres)
+    angles, notes = leg_angles(trial, subject, segs, centres, "run static_foot_offsets")
+    return PiGResult(segs, centres, cov, angles, trial.time, trial.source, tuple(notes))
+
+
+def leg_angles(trial: MarkerTrial, subject: SubjectMeasurements, segs: dict, centres: dict,
+               uncalibrated_hint: str) -> tuple[dict, list[str]]:
+    """Plug-in-Gait hip, knee and ankle angles of both legs; adds the ``foot_r/_l`` segments to `segs`.
+
+    `segs` uses this module's names (``tibia_untorsioned`` for the knee, ``tibia``
+    with torsion for the ankle).  Without static foot offsets the ankle angles
+    are NaN and a note (ending with `uncalibrated_hint`) says so.
+
+    Returns
+    -------
+    angles : dict ``hip_r, knee_r, ankle_r, ..._l`` -> (F, 3) radians
+    notes : list of str
+    """
+    angles, notes = {}, []
     for s, sfx in (("R", "_r"), ("L", "_l")):
         m = subject.side(s)
         angles[f"hip{sfx}"] = joint_angles(segs["pelvis"], segs[f"femur{sfx}"], "hip", s)
         angles[f"knee{sfx}"] = joint_angles(segs[f"femur{sfx}"], segs[f"tibia_untorsioned{sfx}"], "knee", s)
         pf, ro = m["static_plantar_flexion"], m["static_rotation_offset"]
         if pf is None or ro is None:
-            notes.append(f"{s} foot offsets not calibrated: ankle angles are NaN (run static_foot_offsets)")
+            notes.append(f"{s} foot offsets not calibrated ({uncalibrated_hint}): ankle angles are NaN")
             angles[f"ankle{sfx}"] = np.full((trial.n_frames, 3), np.nan)
         else:
             segs[f"foot{sfx}"] = foot_frame(centres[f"ankle{sfx}"], trial.marker(f"{s}TOE"), segs[f"tibia{sfx}"], s, pf, ro)
             angles[f"ankle{sfx}"] = joint_angles(segs[f"tibia{sfx}"], segs[f"foot{sfx}"], "ankle", s)
-    return PiGResult(segs, centres, cov, angles, trial.time, trial.source, tuple(notes))
+    return angles, notes
 
 
 def _centre_covariance(trial: MarkerTrial, subject: SubjectMeasurements, centres: dict, h: float = 1e-4) -> dict:

@@ -29,7 +29,7 @@ from .foot_to_hip import (REQUIRED_MARKERS, FootToHipCalibration, calibrate, hip
                           knee_ankle_axes, seed_femur_frame)
 from .functional import score
 from .markers import MarkerTrial
-from .pig import (LOWER_BODY_MARKERS, SegmentPose, chord_centre_jacobians, foot_frame, joint_angles, leg_chain,
+from .pig import (LOWER_BODY_MARKERS, SegmentPose, chord_centre_jacobians, joint_angles, leg_angles, leg_chain,
                   median_covariance, pelvis_frame, plug_in_gait, sacrum_marker, static_foot_offsets, unit_vectors)
 from .subject import SubjectMeasurements, validate_static
 
@@ -160,10 +160,11 @@ def _functional_hips_score(functional: MarkerTrial) -> dict:
 
 
 def _pig_with_hips(trial: MarkerTrial, subject: SubjectMeasurements, hips_local: dict) -> tuple[dict, dict, dict]:
-    """Plug-in-Gait chain with given hip centres (pelvis frame) instead of the Davis regression."""
+    """Plug-in-Gait chain (segments under `kinematics.pig` names) with given hip centres (pelvis frame)
+    instead of the Davis regression."""
     pelvis = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), sacrum_marker(trial))
     legs, centres = leg_chain(trial, subject, {s: pelvis.to_lab(hips_local[s]) for s, _ in SIDES})
-    return _our_segment_names({"pelvis": pelvis, **legs}), centres, pelvis
+    return {"pelvis": pelvis, **legs}, centres, pelvis
 
 
 def _our_segment_names(pig_segments: dict) -> dict:
@@ -203,19 +204,12 @@ def _reconstruct_pig(trial, subject, static, functional, notes) -> Reconstructio
         notes += list(res.notes)
         return Reconstruction("pig", trial.time, res.centres, res.centre_cov, segs, res.angles, {}, tuple(notes), trial.source)
     hip_est = _functional_hips_score(functional)
-    segs, centres, pelvis = _pig_with_hips(trial, subject, {s: e.proximal for s, e in hip_est.items()})
-    angles, cov = {}, {}
-    for s, sfx in SIDES:
-        m = subject.side(s)
-        angles[f"hip{sfx}"] = joint_angles(segs["pelvis"], segs[f"femur{sfx}"], "hip", s)
-        angles[f"knee{sfx}"] = joint_angles(segs[f"femur{sfx}"], segs[f"tibia{sfx}"], "knee", s)
-        pf, ro = m["static_plantar_flexion"], m["static_rotation_offset"]
-        if pf is None or ro is None:
-            notes.append(f"{s} foot offsets not calibrated (no static trial): ankle angles are NaN")
-            angles[f"ankle{sfx}"] = np.full((trial.n_frames, 3), np.nan)
-        else:
-            segs[f"foot{sfx}"] = foot_frame(centres[f"ankle{sfx}"], trial.marker(f"{s}TOE"), segs[f"tibia_torsioned{sfx}"], s, pf, ro)
-            angles[f"ankle{sfx}"] = joint_angles(segs[f"tibia_torsioned{sfx}"], segs[f"foot{sfx}"], "ankle", s)
+    pig_segs, centres, pelvis = _pig_with_hips(trial, subject, {s: e.proximal for s, e in hip_est.items()})
+    angles, pig_notes = leg_angles(trial, subject, pig_segs, centres, "no static trial")
+    notes += pig_notes
+    segs = _our_segment_names(pig_segs)
+    cov = {}
+    for s, _ in SIDES:
         cov.update(_chord_cov(trial, subject, s, centres, pelvis, hip_est[s].cov_proximal))
     notes.append("hip centres: SCoRE on the functional trial (pelvis and thigh clusters)")
     return Reconstruction("pig", trial.time, centres, cov, segs, angles, {s: e for s, e in hip_est.items()},
