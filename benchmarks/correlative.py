@@ -13,7 +13,11 @@ Protocol (the seed's, on phantoms with soft-tissue artefact and 0.5 mm noise):
   spline knee (3DOF, natural cubic splines of flexion, gait2392 style) and the
   hinge (1DOF: the planar knee's axis and its centre at zero flexion, as the
   seed; ``1DOF-LS``, the least-squares constant knee, is reported as well);
-* Table 3: IK of the test trials with each knee (motion-specific models);
+* Table 3: IK of the test trials with each knee (motion-specific models); for
+  the crouch both the global law (all foot angles) and the sub-motion laws of
+  seed 3.3 (every knee model fitted on the training crouch of one foot angle,
+  each test crouch tracked with the models of its own foot angle), plus the
+  reductions per foot angle and the free six-DOF knee's (the STA floor);
   Table 4: subject 1's law vs subject 2's law scaled by eq. (3) (RGT-RLFE and
   RMFE-RLFE distances: phantom landmarks RTRO, RKNE, RMFC); Table 5: gait law
   on crouch trials and crouch law on gait trials.
@@ -42,7 +46,8 @@ sys.path.insert(0, str(REPO))
 from kinematics.atomic import write_text  # noqa: E402
 from kinematics.correlative import coefficient_table, json_text, scale_factor  # noqa: E402
 from kinematics.correlative_experiments import (  # noqa: E402
-    CorrelativeKnee, FreeKnee, compare_knees, reduction, score_results, summarize, tracking_table, train_knees,
+    CorrelativeKnee, FreeKnee, compare_knees, compare_knees_by_sub_motion, reduction, score_results, sub_motion_knees,
+    summarize, tracking_table, train_knees,
 )
 
 #: the seed's seven markers and their phantom analogues
@@ -52,6 +57,11 @@ LEG_MARKERS = tuple(f"R{m}" for m in ("THI", "THIP", "THIA", "KNE", "KNEM", "TIB
 #: seed section 4.1 reductions, percent (mean, sd)
 SEED_REDUCTIONS = {"gait": {"vs_1DOF": (44, 8), "vs_3DOF": (31, 5)}, "crouch": {"vs_1DOF": (71, 9), "vs_3DOF": (66, 6)}}
 ANGLES = (0, 30, 60, 90, 120, 180)
+
+
+def foot_angle(label: str) -> str:
+    """Sub-motion key of a crouch trial label ``crouch_AAA_NN[.c3d]``: the foot angle ``AAA``."""
+    return label.split("_")[1]
 
 
 def subject_trials(seed: int, stature: float, n_gait: int, n_crouch_repeats: int, rate: float, progress,
@@ -116,6 +126,8 @@ def main(argv=None) -> int:
             knees[subj, motion] = train_knees(sk.model, train[motion], tracked)
             log(f"subject {subj} {motion}: free-knee IK on {len(train[motion])} trials, "
                 f"marker RMS {1e3 * knees[subj, motion].training_rms:.2f} mm ({time.perf_counter() - t:.1f} s)")
+    # seed 3.3: crouch models per sub-motion (foot angle), each fitted on its own training crouch(es)
+    sub_knees = sub_motion_knees(knees["A", "crouch"], foot_angle)
     s_scale = {s: scale_factor(lmA[s], lmB[s], "TRO", "KNE", "MFC") for s in ("r", "l")}
     from2 = {motion: tuple(CorrelativeKnee(s, knees["B", motion].laws[s].scaled(s_scale[s]), "3+DOF from2")
                            for s in ("r", "l")) for motion in ("gait", "crouch")}
@@ -132,6 +144,9 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         results[motion] = compare_knees(skA.model, sets, testA[motion], tracked,
                                         progress=lambda lab, m=motion: log(f"  {m} test trials tracked with {lab}"))
+        if motion == "crouch":
+            results[motion].update(compare_knees_by_sub_motion(skA.model, sub_knees, testA[motion], foot_angle, tracked))
+            log("  crouch test trials tracked with the sub-motion (foot angle) models")
         log(f"{motion}: {len(sets)} knee models x {len(testA[motion])} trials ({time.perf_counter() - t:.1f} s)")
 
     report = {"benchmark": "correlative", "seed": "Pronost, Sandholm & Thalmann 2010, section 4.1, Tables 3-5",
@@ -147,7 +162,9 @@ def main(argv=None) -> int:
     tables_md = []
     for sname, markers in scored.items():
         sc = {m: score_results(results[m], testA[m], markers) for m in ("gait", "crouch")}
-        t3 = tracking_table({"Gait": sc["gait"], "Crouch": sc["crouch"]}, ("1DOF", "3DOF", "3+DOF"),
+        sub_row = {lab: sc["crouch"][f"{lab} sub"] for lab in ("1DOF", "3DOF", "3+DOF")}
+        t3 = tracking_table({"Gait": sc["gait"], "Crouch (global law)": sc["crouch"], "Crouch (sub-motion laws)": sub_row},
+                            ("1DOF", "3DOF", "3+DOF"),
                             f"Table 3 ({sname} markers): average sum of frame RMS distances (m) (mean frame RMS)")
         t4 = tracking_table({"Gait": {"model1": sc["gait"]["3+DOF"], "model1from2": sc["gait"]["3+DOF from2"]},
                              "Crouch": {"model1": sc["crouch"]["3+DOF"], "model1from2": sc["crouch"]["3+DOF from2"]}},
@@ -162,14 +179,27 @@ def main(argv=None) -> int:
                    "3DOF_vs_1DOF": reduction(sc[m]["3DOF"], sc[m]["1DOF"]),
                    "6DOF_floor_vs_1DOF": reduction(sc[m]["6DOF"], sc[m]["1DOF"]),
                    "6DOF_floor_vs_3DOF": reduction(sc[m]["6DOF"], sc[m]["3DOF"])} for m in ("gait", "crouch")}
+        red["crouch sub-motion"] = {"vs_1DOF": reduction(sc["crouch"]["3+DOF sub"], sc["crouch"]["1DOF sub"]),
+                                    "vs_3DOF": reduction(sc["crouch"]["3+DOF sub"], sc["crouch"]["3DOF sub"]),
+                                    "vs_global_1DOF": reduction(sc["crouch"]["3+DOF sub"], sc["crouch"]["1DOF"]),
+                                    "vs_global_3DOF": reduction(sc["crouch"]["3+DOF sub"], sc["crouch"]["3DOF"]),
+                                    "vs_global_3+DOF": reduction(sc["crouch"]["3+DOF sub"], sc["crouch"]["3+DOF"])}
+        per_angle = {}
+        for a in ANGLES:
+            idx = [i for i, t in enumerate(testA["crouch"]) if foot_angle(t.source) == f"{a:03d}"]
+            pick = lambda lab: [sc["crouch"][lab][i] for i in idx]  # noqa: E731
+            per_angle[a] = {f"{b} vs {w}": reduction(pick(b), pick(w))[0]
+                            for b, w in (("3+DOF", "1DOF"), ("3+DOF", "3DOF"), ("6DOF", "1DOF"),
+                                         ("3+DOF sub", "1DOF sub"), ("3+DOF sub", "3DOF sub"))}
+        red["crouch per foot angle (mean over its test trials)"] = per_angle
         order = {m: bool(summarize(sc[m]["3+DOF"])["sum_rms_m_mean"] < summarize(sc[m]["3DOF"])["sum_rms_m_mean"]
                          < summarize(sc[m]["1DOF"])["sum_rms_m_mean"]) for m in ("gait", "crouch")}
         report["scoring"][sname] = {
             "summary": {m: {lab: summarize(v) for lab, v in sc[m].items()} for m in ("gait", "crouch")},
             "per_trial": {m: {lab: [s.to_dict() for s in v] for lab, v in sc[m].items()} for m in ("gait", "crouch")},
             "reductions_percent_mean_sd": red, "seed_reductions_percent": SEED_REDUCTIONS,
-            "meets_seed_reductions": {m: {k: bool(red[m][k][0] >= SEED_REDUCTIONS[m][k][0]) for k in ("vs_1DOF", "vs_3DOF")}
-                                      for m in ("gait", "crouch")},
+            "meets_seed_reductions": {m: {k: bool(red[m][k][0] >= SEED_REDUCTIONS[m.split()[0]][k][0]) for k in ("vs_1DOF", "vs_3DOF")}
+                                      for m in ("gait", "crouch", "crouch sub-motion")},
             "ordering_correlative_lt_3dof_lt_1dof": order,
             "tables_markdown": [t.to_markdown() for t in (t3, t4, t5)],
         }
@@ -180,6 +210,12 @@ def main(argv=None) -> int:
                  f"bound set by the free 6-DOF knee: {red[m]['6DOF_floor_vs_1DOF'][0]:.0f} / {red[m]['6DOF_floor_vs_3DOF'][0]:.0f} %; "
                  f"true phantom knee {1e3 * summarize(sc[m]['true knee'])['mean_rms_m']:.2f} mm, "
                  f"6DOF {1e3 * summarize(sc[m]['6DOF'])['mean_rms_m']:.2f} mm]" for m in ("gait", "crouch")]
+        r = red["crouch sub-motion"]
+        lines.append(f"crouch, sub-motion (foot angle) models: 3+DOF vs 1DOF {r['vs_1DOF'][0]:.0f} ({r['vs_1DOF'][1]:.0f}) %, "
+                     f"vs 3DOF {r['vs_3DOF'][0]:.0f} ({r['vs_3DOF'][1]:.0f}) %; sub-motion 3+DOF vs global 3+DOF "
+                     f"{r['vs_global_3+DOF'][0]:.0f} %")
+        lines.append("crouch per foot angle, 3+DOF vs 1DOF / 3DOF / (6DOF vs 1DOF) %: " + ", ".join(
+            f"{a}: {v['3+DOF vs 1DOF']:.0f}/{v['3+DOF vs 3DOF']:.0f}/({v['6DOF vs 1DOF']:.0f})" for a, v in per_angle.items()))
         tables_md.append(f"Reductions ({sname} markers, mean (sd) over trials):\n" + "\n".join(lines) + "\n")
     laws = {f"subject1 {m}": knees["A", m].laws["r"] for m in ("gait", "crouch")}
     laws.update({f"subject2 {m} scaled": from2[m][0].law for m in ("gait", "crouch")})

@@ -49,6 +49,7 @@ __all__ = [
     "knee_kinematics", "fit_hinge_knee", "fit_planar_spline_knee", "fit_correlative_knee", "fit_spline_basis",
     "TrialScore", "score_trial", "track", "summarize", "reduction",
     "tracking_table", "TrainedKnees", "train_knees", "compare_knees", "score_results", "VARIANTS",
+    "fit_knee_models", "select_frames", "sub_motion_knees", "compare_knees_by_sub_motion",
 ]
 
 #: Column names of the seed's Table 3 (hinge, planar spline, correlative)
@@ -413,17 +414,76 @@ def train_knees(model: Model, trials: Sequence[MarkerTrial], tracked: Sequence[s
     free = free_knee_model(model, sides)
     res = track(free, trials, tracked, **ik)
     labels = [t.source or f"trial{i}" for i, t in enumerate(trials)]
-    kins, models = {}, {"1DOF": [], "1DOF-LS": [], "3DOF": [], "3+DOF": []}
-    for s in sides:
-        kin = knee_kinematics(res, s, labels)
-        kins[s] = kin
+    kins = {s: knee_kinematics(res, s, labels) for s in sides}
+    rms = float(np.nanmean(np.concatenate([r.rms for r in res])))
+    return TrainedKnees(kins, fit_knee_models(kins, n_knots, default_flexion), rms)
+
+
+def fit_knee_models(kinematics: Mapping[str, KneeKinematics], n_knots: int = 6,
+                    default_flexion: float = 0.0) -> dict:
+    """Every knee model fitted on free-knee frames: ``{label: (model per side, ...)}``.
+
+    Labels ``1DOF`` (seed hinge), ``1DOF-LS``, ``3DOF`` (planar splines) and ``3+DOF``
+    (correlative law), in the order of `kinematics` (side -> KneeKinematics).
+    """
+    models = {"1DOF": [], "1DOF-LS": [], "3DOF": [], "3+DOF": []}
+    for kin in kinematics.values():
         planar = fit_planar_spline_knee(kin, n_knots)
         models["3DOF"].append(planar)
         models["1DOF"].append(fit_hinge_knee(kin, planar, default_flexion))
         models["1DOF-LS"].append(replace(fit_hinge_knee(kin), label="1DOF-LS"))
         models["3+DOF"].append(fit_correlative_knee(kin))
-    rms = float(np.nanmean(np.concatenate([r.rms for r in res])))
-    return TrainedKnees(kins, {k: tuple(v) for k, v in models.items()}, rms)
+    return {k: tuple(v) for k, v in models.items()}
+
+
+def select_frames(kin: KneeKinematics, keep: np.ndarray) -> KneeKinematics:
+    """The frames of `kin` where the boolean mask `keep` (F,) is true."""
+    keep = np.asarray(keep, bool)
+    if keep.shape != (kin.n_frames,):
+        raise InputError(None, f"frame mask of shape {keep.shape} for {kin.n_frames} frames")
+    if not keep.any():
+        raise InputError(None, f"knee {kin.side}: no training frame selected")
+    return KneeKinematics(kin.side, kin.rotations[keep], kin.translations[keep], kin.groups[keep])
+
+
+def sub_motion_knees(trained: TrainedKnees, sub_motion: Callable[[str], str], n_knots: int = 6,
+                     default_flexion: float = 0.0) -> dict:
+    """Seed 3.3: knee models per sub-motion (e.g. crouch per foot angle).
+
+    The training frames are grouped by ``sub_motion(trial label)`` and every
+    knee model (`fit_knee_models`) is fitted on each group alone.
+
+    Returns
+    -------
+    ``{sub-motion: {label: (model per side, ...)}}`` in order of first appearance.
+    """
+    kins = trained.kinematics
+    first = next(iter(kins.values()))
+    keys = np.array([sub_motion(str(g)) for g in first.groups], dtype=object)
+    out = {}
+    for key in dict.fromkeys(keys.tolist()):
+        sel = {s: select_frames(k, np.array([sub_motion(str(g)) == key for g in k.groups]))
+               for s, k in kins.items()}
+        out[key] = fit_knee_models(sel, n_knots, default_flexion)
+    return out
+
+
+def compare_knees_by_sub_motion(model: Model, knees_by_sub: Mapping[str, Mapping[str, Sequence]],
+                                trials: Sequence[MarkerTrial], sub_motion: Callable[[str], str],
+                                tracked: Sequence[str], labels: Sequence[str] = ("1DOF", "3DOF", "3+DOF"),
+                                suffix: str = " sub", **ik) -> dict:
+    """IK of each trial with the knee models of its own sub-motion (seed 3.3 sub-motion laws).
+
+    Returns ``{label + suffix: [IKResult per trial]}`` in the order of `trials`.
+    """
+    out = {lab + suffix: [None] * len(trials) for lab in labels}
+    for i, tr in enumerate(trials):
+        key = sub_motion(tr.source or f"trial{i}")
+        if key not in knees_by_sub:
+            raise InputError(tr.source, f"no knee model for sub-motion {key!r} (have {sorted(knees_by_sub)})")
+        for lab in labels:
+            out[lab + suffix][i] = track(with_knees(model, knees_by_sub[key][lab]), [tr], tracked, **ik)[0]
+    return out
 
 
 def compare_knees(model: Model, knees: Mapping[str, Sequence], trials: Sequence[MarkerTrial], tracked: Sequence[str],

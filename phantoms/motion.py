@@ -9,6 +9,9 @@ Trials (coordinates of `phantoms.skeleton`, then markers):
 * ``crouch_AAA_NN``: squats to 100 deg knee flexion with the feet turned out
   so that the angle between them is AAA degrees (0, 30, 60, 90, 120, 180;
   Pronost et al. 2010), the pelvis lowered to keep the heels at their height;
+  the knee rotates internally 15-25 deg and goes 2-5 deg into varus with
+  flexion at every foot angle, the turnout is taken by the hips (70 %) and
+  the knees (30 %) (`crouch_coordinates`, sources there);
 * ``functional_hip`` (45 deg) and ``functional_hip_RR``: star-arc hip
   calibration (Camomilla et al. 2006): 8 excursions of RR degrees in the
   flexion-abduction plane then a circumduction, right hip then left hip.
@@ -27,7 +30,8 @@ Markers: the skeleton's STA-free sites plus
   (body frame; phi_k the driving angles: pelvis <- hip flexions, thigh <-
   hip angles and knee flexion, shank <- knee flexion/rotation and ankle,
   foot <- ankle and subtalar).  Amplitudes over the reference excursion
-  (hip 35 deg, knee 60 deg, ankle 20 deg): thigh 10-20 mm, shank 5-15 mm,
+  (hip flexion 35 deg, ab/adduction 9 deg, rotation 17 deg; knee flexion 60 deg,
+  rotation 14 deg; ankle 20 deg): thigh 10-20 mm, shank 5-15 mm,
   pelvis about 5 mm, foot 2-3 mm, drawn per seed; markers over bony
   prominences move less (knee 45-60 %, malleoli 20-30 %, TIBM3 15-20 % of
   their segment's amplitude); the bone-fixed validation markers TIBM1/TIBM2
@@ -73,8 +77,13 @@ _SEGMENT_DRIVERS = {
     "tibia": ("knee_flexion_{s}", "knee_rotation_{s}", "ankle_angle_{s}"),
     "calcn": ("ankle_angle_{s}", "subtalar_angle_{s}"),
 }
-_REFERENCE = {"hip_flexion": 0.6, "hip_adduction": 0.15, "hip_rotation": 0.15, "knee_flexion": 1.05,
-              "knee_rotation": 0.1, "ankle_angle": 0.35, "subtalar_angle": 0.1}
+#: reference excursion of each driving angle (rad): the amplitude ranges of `_AMPLITUDE` are the STA
+#: over these excursions.  Hip and knee axial rotation use the excursions of the tasks in which their
+#: STA was measured: thigh markers move 1-5 cm over an active hip rotation task (Fiorentino et al. 2017,
+#: Gait Posture 55:184, dual fluoroscopy) and shank markers up to about 15 mm in pivoting tasks with
+#: 10-15 deg of tibial rotation (Akbarshahi et al. 2010; Kefala et al. 2017), not the few degrees of gait.
+_REFERENCE = {"hip_flexion": 0.6, "hip_adduction": 0.15, "hip_rotation": 0.3, "knee_flexion": 1.05,
+              "knee_rotation": 0.25, "ankle_angle": 0.35, "subtalar_angle": 0.1}
 #: amplitude of a marker relative to its segment's (range drawn per marker)
 _MARKER_FACTOR = {"KNE": (0.45, 0.6), "KNEM": (0.45, 0.6), "ANK": (0.2, 0.3), "ANKM": (0.2, 0.3), "TIBM3": (0.15, 0.2)}
 #: tangential wobble of the wand markers over the reference excursion, m
@@ -235,8 +244,30 @@ def crouch_coordinates(sk: PhantomSkeleton, foot_angle_deg: float, rate: float, 
                        depth: float = 1.0, rng: np.random.Generator | None = None) -> np.ndarray:
     """One crouch (down and up) with the feet turned out by ``foot_angle_deg / 2`` each; (F, n_q).
 
-    The foot angle is taken mostly by hip external rotation (80 %) and a
-    little by knee external rotation; wide stances add hip abduction.
+    Knee flexion reaches 100 deg (x U(0.95, 1.05) per side), hip flexion 85 deg,
+    ankle dorsiflexion 28 deg, the pelvis tilts 18 deg forward and is lowered
+    to keep the heels at their height (`_heel_compensation`).
+
+    The knee's secondary rotations are those of real knees in weight-bearing
+    squats, the same at every foot angle (they are a property of the joint):
+
+    * tibial internal rotation coupled to flexion, ``IR_max g(a1)`` with
+      ``IR_max ~ U(15, 25) deg`` per side at 100 deg flexion and
+      ``g = (1 - exp(-a1/0.5 rad)) / (1 - exp(-1.75/0.5))`` rising fastest in the first 30 deg
+      (the screw-home) then levelling: Qi et al. 2013 (J Biomech 46:1576,
+      dual fluoroscopy, lunge: internal rotation rises sharply from 0 to 30 deg,
+      varies little from 30 to 120 deg); Moro-oka et al. 2008 (J Orthop Res 26:428,
+      squat: about 20 deg over 0-120 deg); wide-based squats show the same
+      rotation with flexion (JSSM 2012, 11:695);
+    * varus (knee adduction) rising by ``U(2, 5) deg`` at full flexion (a few
+      degrees: Qi et al. 2013; Kefala et al. 2017 rarely more than 6 deg).
+
+    The foot angle (turnout) is taken 70 % by hip external rotation and 30 %
+    by knee (tibiofemoral) external rotation, constant through the trial
+    (Hardaker, Erickson & Myers 1984: a 180 deg turnout is 60-70 % hip rotation
+    and 30-40 % knee, tibia and foot; the phantom has no midfoot joint, so the
+    knee carries the whole non-hip share and the angle between the feet is the
+    nominal one).  Wide stances add hip abduction (up to 20 deg at 180 deg).
     """
     rng = rng or np.random.default_rng(0)
     F = max(int(round(duration * rate)), 2)
@@ -249,12 +280,15 @@ def crouch_coordinates(sk: PhantomSkeleton, foot_angle_deg: float, rate: float, 
     q0 = sk.standing_q
     for s in SIDES:
         g = rng.uniform(0.95, 1.05)
-        _set(q, sk, f"knee_flexion_{s}", q0[ix(f"knee_flexion_{s}")] + g * np.radians(100) * s_)
+        flex = g * np.radians(100) * s_
+        ir_max, varus = np.radians(rng.uniform(15.0, 25.0)), np.radians(rng.uniform(2.0, 5.0))
+        screw = (1 - np.exp(-flex / 0.5)) / (1 - np.exp(-np.radians(100) / 0.5))
+        _set(q, sk, f"knee_flexion_{s}", q0[ix(f"knee_flexion_{s}")] + flex)
         _set(q, sk, f"hip_flexion_{s}", q0[ix(f"hip_flexion_{s}")] + g * np.radians(85) * s_)
-        _set(q, sk, f"hip_rotation_{s}", -0.8 * half - np.radians(3) * s_)
-        _set(q, sk, f"hip_adduction_{s}", -np.radians(20) * wide * s_ - np.radians(2) * wide)
-        _set(q, sk, f"knee_rotation_{s}", -0.2 * half + np.radians(6) * s_ * (1 - 0.5 * wide))
-        _set(q, sk, f"knee_adduction_{s}", np.radians(3) * wide * s_ - np.radians(1.5) * s_)
+        _set(q, sk, f"hip_rotation_{s}", q0[ix(f"hip_rotation_{s}")] - 0.7 * half - np.radians(3) * s_)
+        _set(q, sk, f"hip_adduction_{s}", q0[ix(f"hip_adduction_{s}")] - np.radians(20) * wide * s_ - np.radians(2) * wide)
+        _set(q, sk, f"knee_rotation_{s}", q0[ix(f"knee_rotation_{s}")] - 0.3 * half + ir_max * screw)
+        _set(q, sk, f"knee_adduction_{s}", q0[ix(f"knee_adduction_{s}")] + varus * s_)
         _set(q, sk, f"ankle_angle_{s}", g * np.radians(28) * s_)
         _set(q, sk, f"subtalar_angle_{s}", -np.radians(4) * wide * s_)
     _set(q, sk, "pelvis_tilt", q0[ix("pelvis_tilt")] + np.radians(18) * s_)

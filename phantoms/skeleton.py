@@ -177,14 +177,23 @@ class PhantomSkeleton:
 def _knee_law(side: str, rng: np.random.Generator, standing: np.ndarray) -> CorrelativeLaw:
     """A plausible knee law: slopes (m/rad) drawn within published ranges.
 
-    Anterior tibial translation grows with flexion (femoral roll-back,
-    2-6 mm/rad), the tibia sinks slightly (1-3 mm/rad), and rotation and
-    ab/adduction couple to antero-posterior and medio-lateral shifts of a few
-    mm per radian.  The constant term makes the translations zero standing.
+    * knee_tx (anterior translation of the tibia under the femur): femoral
+      roll-back of the knee centre (mid-condyles) of about 8-17 mm over 0-120 deg
+      of weight-bearing flexion, i.e. 4-8 mm/rad (Johal et al. 2005, J Biomech
+      38:269, MRI squat: lateral condyle ~20 mm, medial a few mm; Moro-oka et al.
+      2008, J Orthop Res 26:428; Qi et al. 2013, J Biomech 46:1576), plus the
+      lateral-condyle roll-back that comes with tibial internal rotation
+      (a few mm per 10 deg, signs either way across knees: -4..4 mm/rad);
+    * knee_ty (proximal): the tibia sinks slightly with flexion (1-3 mm/rad);
+    * knee_tz (lateral): ab/adduction lifts a condyle and shifts the centre
+      medio-laterally by a few mm per radian (condylar lift-off), rotation
+      likewise.
+
+    The constant term makes the translations zero standing.
     """
     u = rng.uniform
     slopes = 1e-3 * np.array([
-        [u(2.0, 6.0), u(-3.0, 3.0), u(-4.0, 4.0)],    # knee_tx (anterior)
+        [u(4.0, 8.0), u(-3.0, 3.0), u(-4.0, 4.0)],    # knee_tx (anterior)
         [u(-3.0, -1.0), u(-2.0, 2.0), u(-2.0, 2.0)],  # knee_ty (proximal)
         [u(-2.0, 2.0), u(3.0, 8.0), u(-6.0, -2.0)],   # knee_tz (lateral)
     ])

@@ -6,8 +6,8 @@ import pytest
 
 from kinematics.correlative_experiments import (
     CorrelativeKnee, HingeKnee, compare_knees, fit_correlative_knee, fit_planar_spline_knee, free_knee_model, knee_coordinates,
-    knee_kinematics, knee_rotations, knee_translations, score_results, score_trial, summarize, track, train_knees,
-    with_knees,
+    compare_knees_by_sub_motion, knee_kinematics, knee_rotations, knee_translations, score_results, score_trial,
+    select_frames, sub_motion_knees, summarize, track, train_knees, with_knees,
 )
 from kinematics.errors import FitError, InputError
 from kinematics.ik import coordinate_map
@@ -126,7 +126,9 @@ def test_law_of_artefact_free_markers_is_the_phantom_law(world):
         law = fit_correlative_knee(kin).law
         d = law.distance_to(sk.knee_laws[s], kin.rotations)
         assert d.max() < 1e-8                                   # m, over the poses used
-        assert law.fit.rms.max() < 1e-8 and law.fit.valid
+        # (not the seed's max|MC - E| < min|E| criterion: the phantom's translations are zero standing and
+        # every trial starts standing, so min|E| is ~0 and the criterion fails on round-off alone)
+        assert law.fit.rms.max() < 1e-8 and law.fit.well_conditioned and law.fit.r2.min() > 1 - 1e-12
 
 
 def test_bad_knee_inputs(world, experiment):
@@ -144,3 +146,32 @@ def test_bad_knee_inputs(world, experiment):
         score_trial(experiment["gait"][1]["1DOF"][0], ["NOPE"])
     assert isinstance(knees.models["1DOF"][0], HingeKnee) and isinstance(knees.models["3+DOF"][0], CorrelativeKnee)
     assert set(knee_coordinates("r")) == set(knee_rotations("r") + knee_translations("r"))
+
+
+def _foot_angle(label):
+    return label.split("_")[1]
+
+
+def test_sub_motion_models_are_fitted_on_their_own_frames_and_used_on_their_own_trials(experiment, world):
+    sk, tracked, _, test = world
+    knees = experiment["crouch"][0]
+    sub = sub_motion_knees(knees, _foot_angle)
+    assert list(sub) == [f"{a:03d}" for a in ANGLES]
+    kin = knees.kinematics["r"]
+    for key, models in sub.items():
+        keep = np.array([_foot_angle(str(g)) == key for g in kin.groups])
+        own = fit_correlative_knee(select_frames(kin, keep))
+        np.testing.assert_allclose(models["3+DOF"][0].law.coefficients, own.law.coefficients, atol=1e-12)
+        assert models["3+DOF"][0].law.fit.n_frames == keep.sum() < kin.n_frames
+    res = compare_knees_by_sub_motion(sk.model, sub, test["crouch"][:2], _foot_angle, tracked, labels=("3+DOF",))
+    assert list(res) == ["3+DOF sub"] and len(res["3+DOF sub"]) == 2
+    # the trial at 60 deg was tracked with the 60 deg law: its knee translations obey that law exactly
+    r = res["3+DOF sub"][1]
+    law = sub["060"]["3+DOF"][0].law
+    ix = [r.coordinates.index(c) for c in knee_rotations("r") + knee_translations("r")]
+    q = r.q[r.solved][:, ix]
+    np.testing.assert_allclose(q[:, 3:], law.predict(q[:, :3]), atol=1e-9)
+    with pytest.raises(InputError):
+        compare_knees_by_sub_motion(sk.model, {"000": sub["000"]}, test["crouch"][1:2], _foot_angle, tracked)
+    with pytest.raises(InputError):
+        select_frames(kin, np.zeros(kin.n_frames, bool))

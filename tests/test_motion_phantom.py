@@ -111,6 +111,37 @@ def test_crouch_foot_angles(world):
     assert k.max() > 90
 
 
+def test_crouch_knee_rotates_internally_and_into_varus_with_flexion_at_every_foot_angle(world):
+    """Weight-bearing squats: 15-25 deg tibial internal rotation, mostly in the first 30 deg, 2-5 deg varus."""
+    sk, trials, _ = world
+    ix = sk.model.coordinate_index
+    q0 = sk.standing_q
+    for a in (0, 90, 180):
+        q = trials[f"crouch_{a:03d}_01"].q
+        for s in ("r", "l"):
+            flex = q[:, ix(f"knee_flexion_{s}")] - q0[ix(f"knee_flexion_{s}")]
+            rot = np.degrees(q[:, ix(f"knee_rotation_{s}")] - q0[ix(f"knee_rotation_{s}")])
+            var = np.degrees(q[:, ix(f"knee_adduction_{s}")] - q0[ix(f"knee_adduction_{s}")])
+            turnout = 0.3 * a / 2                       # the knee's share of the turnout (external, constant)
+            ir = rot + turnout
+            i = np.argmax(flex)
+            assert 14.0 < ir[i] < 26.0 and abs(ir[0]) < 1e-9
+            early = np.argmin(np.abs(flex[: i + 1] - np.radians(30)))
+            assert ir[early] > 0.55 * ir[i]              # screw-home: most of it by 30 deg
+            assert 1.9 < var[i] < 5.1
+
+
+def test_crouch_thigh_artefact_in_published_range(world):
+    """Thigh skin markers move 1-4 cm in deep flexion, shank markers less (Akbarshahi 2010; Fiorentino 2017)."""
+    _, trials, _ = world
+    tr = trials["crouch_000_01"]
+    peak = dict(zip(tr.markers.names, 1e3 * np.linalg.norm(tr.sta, axis=-1).max(axis=0)))
+    thigh = [peak[f"R{m}"] for m in ("THI", "THIP", "THIA")]
+    shank = [peak[f"R{m}"] for m in ("TIB", "TIBM3", "ANK")]
+    assert 10.0 < max(thigh) < 40.0
+    assert max(shank) < max(thigh)
+
+
 def test_functional_hip_centre_without_artefact_under_2mm(phantom):
     sk, trials, _ = make_trials(phantom, 0, rate=50, gait_trials=0, crouch_angles=(), functional_ranges=(45,),
                                 sta=False, noise_sd=0.0005, static_duration=0.2)
