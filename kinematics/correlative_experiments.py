@@ -25,6 +25,17 @@ the seed's: the sum over frames of the frame's RMS distance between measured
 and model markers (not normalised by frames or markers, metres), reported with
 the mean frame RMS.
 
+Two IK protocols (`TrackingProtocol`):
+
+* the seed's (`seed_protocol`, section 3.2: "an IK solver driven by the
+  positions of the seven markers", equal weights): a one-leg model
+  (`leg_model`) that keeps only the bodies the seven markers observe (pelvis,
+  thigh, shank), the pelvis rotations locked so that pelvis translation and
+  hip rotations are exactly the thigh's six free coordinates, the other leg
+  and the foot removed (no tracked marker sees them);
+* the whole-body protocol (`whole_body_protocol`): every skin marker of the
+  pelvis and both legs, both knees learnt and compared.
+
 Units: radians, metres.
 """
 from __future__ import annotations
@@ -36,11 +47,13 @@ import numpy as np
 
 from .correlative import CorrelativeLaw, TextTable, fit_law
 from .coupling import CoordinateCoupler, LinearCoupling
+from .coupling import LinearInequalities
 from .errors import FitError, InputError
+from .fk import marker_jacobian
 from .functions import NaturalCubicSpline
-from .ik import IKResult, solve_ik
+from .ik import IKResult, coordinate_map, solve_ik
 from .markers import MarkerTrial
-from .model import Model
+from .model import GROUND, Model
 
 __all__ = [
     "knee_rotations", "knee_translations", "knee_coordinates",
@@ -50,10 +63,20 @@ __all__ = [
     "TrialScore", "score_trial", "track", "summarize", "reduction",
     "tracking_table", "TrainedKnees", "train_knees", "compare_knees", "score_results", "VARIANTS",
     "fit_knee_models", "select_frames", "sub_motion_knees", "compare_knees_by_sub_motion",
+    "knee_coordinate_errors", "SEED_MARKERS", "leg_model", "undetermined_coordinates", "TrackingProtocol", "seed_protocol", "whole_body_protocol",
 ]
 
 #: Column names of the seed's Table 3 (hinge, planar spline, correlative)
 VARIANTS = ("1DOF", "3DOF", "3+DOF")
+
+#: The seed's seven right-leg markers (section 3.1) -> their analogues in a Plug-in-Gait marker set
+#: with medial knee/ankle markers (KNEM, ANKM), a proximal antero-lateral thigh marker (THIP) and a
+#: distal medial tibia skin marker (TIBM3) (the motion phantoms' labels).  Epicondyles and malleoli
+#: are the same landmarks; the greater trochanter, tibial tuberosity and fibular head carry no marker
+#: in that set, so the most proximal thigh marker and the two remaining shank skin markers stand in
+#: (two markers on the femur with the epicondyles, four on the shank, as the seed's set).
+SEED_MARKERS = {"RGT": "RTHIP", "RLFE": "RKNE", "RMFE": "RKNEM", "RTT": "RTIBM3", "RFH": "RTIB",
+                "RLATMAL": "RANK", "RMEDMAL": "RANKM"}
 
 
 def knee_rotations(side: str) -> tuple[str, str, str]:
@@ -347,6 +370,29 @@ def track(model: Model, trials: Sequence[MarkerTrial], tracked: Sequence[str], *
     return out
 
 
+def knee_coordinate_errors(result: IKResult, q_true, true_coordinates: Sequence[str], side: str) -> np.ndarray:
+    """RMS over the solved frames of the IK knee coordinates minus the true ones.
+
+    ``e_c = sqrt(mean_f (q_c(f) - q*_c(f))^2)`` for the six knee coordinates of
+    `side` (`knee_coordinates`: three rotations in rad, three translations in m),
+    `q_true` (F, len(true_coordinates)) being the known coordinates of the
+    trial's frames (a phantom's truth).  Tracking error says how well markers
+    are fitted; this says whether the knee the fit implies is the true one
+    (a law can also absorb soft-tissue artefact).
+    """
+    q_true = np.asarray(q_true, float)
+    names = knee_coordinates(side)
+    if q_true.shape[0] != result.q.shape[0]:
+        raise InputError(None, f"{q_true.shape[0]} true frames for {result.q.shape[0]} IK frames")
+    true_names = list(true_coordinates)
+    missing = [c for c in names if c not in true_names or c not in result.coordinates]
+    if missing:
+        raise InputError(None, f"knee coordinates {', '.join(missing)} missing from the IK result or the truth")
+    ok = result.solved & np.isfinite(result.q).all(axis=1)
+    d = result.q[ok][:, [result.coordinates.index(c) for c in names]] - q_true[ok][:, [true_names.index(c) for c in names]]
+    return np.sqrt(np.mean(d**2, axis=0))
+
+
 def summarize(scores: Sequence[TrialScore]) -> dict:
     """Mean (and sd) over trials of the total and mean frame RMS."""
     t = np.array([s.total for s in scores])
@@ -502,3 +548,124 @@ def score_results(results: Mapping[str, Sequence[IKResult]], trials: Sequence[Ma
     """``{label: [TrialScore per trial]}`` of `compare_knees` results over the `scored` markers."""
     return {label: [score_trial(r, scored, t.source or f"trial{i}", label) for i, (r, t) in enumerate(zip(res, trials))]
             for label, res in results.items()}
+
+
+
+# --------------------------------------------------------------------------- IK protocols
+def undetermined_coordinates(model: Model, markers: Sequence[str], q=None, tol: float = 1e-8) -> tuple[str, ...]:
+    """Coordinates that `markers` do not determine at pose `q` (default: the default pose).
+
+    With ``J = (dx_m/dq) (dq/dz)`` the (3M, n_z) Jacobian of the markers with
+    respect to the free parameters z of `kinematics.ik.coordinate_map`, the
+    directions ``dz`` with ``|J dz| <= tol sigma_max |dz|`` move no marker;
+    the coordinates those directions move (``|dq| > 1e-6``) are returned
+    (empty: IK on `markers` is determined, as `IKResult.determined` checks per frame).
+    """
+    cmap = coordinate_map(model)
+    if cmap.n_z == 0:
+        return ()
+    q = model.default_q if q is None else np.asarray(q, float)
+    q = cmap.expand(cmap.project(q))[0]
+    _, Jq = marker_jacobian(model, q, list(markers))
+    E = cmap.jacobian(q)[0]
+    J = Jq.reshape(-1, model.n_q) @ E
+    _, sv, Vt = np.linalg.svd(J, full_matrices=True)
+    sv = np.concatenate([sv, np.zeros(max(0, cmap.n_z - sv.size))])
+    null = Vt[sv <= tol * max(sv[0], 1e-300)]
+    if null.size == 0:
+        return ()
+    moved = np.abs(E @ null.T).max(axis=1) > 1e-6
+    return tuple(n for n, m in zip(model.coordinate_names, moved) if m)
+
+
+def leg_model(model: Model, markers: Sequence[str], lock_root_rotations: bool = True) -> Model:
+    """The part of `model` that `markers` observe: the seed's IK model of one leg (section 3.2).
+
+    Kept: the bodies carrying one of `markers` and their ancestors (seven leg
+    markers: pelvis, thigh, shank); removed: every other body (the other leg,
+    the foot distal to the malleoli), its joints and coordinates, the other
+    markers and frames, and the coupling rows, inequalities and couplers that
+    involve a removed coordinate.  With `lock_root_rotations`, when the root
+    body (the pelvis) carries none of `markers`, the rotations of its joint
+    are locked at their default: the root's translations and the next joint's
+    rotations (the hip) then are the six free coordinates of the thigh, which
+    the markers determine; unlocked, the pelvis orientation and the hip angles
+    would trade off freely (three undetermined directions).
+
+    Raises
+    ------
+    InputError
+        A marker the model lacks, or markers that leave coordinates of the kept
+        model undetermined (named) at the default pose.
+    """
+    markers = tuple(dict.fromkeys(markers))
+    missing = [m for m in markers if m not in model.marker_names]
+    if missing:
+        raise InputError(model.name, f"no marker {', '.join(missing)} in the model")
+    if not markers:
+        raise InputError(model.name, "a leg model needs markers")
+    keep = {GROUND}
+    for m in markers:
+        b = model.body_index(model.marker(m).body)
+        while b >= 0:
+            keep.add(model.bodies[b].name)
+            b = model.parent[b]
+    joints = tuple(j for j in model.joints if j.child in keep)
+    read = {c for j in joints for c in j.coordinates}
+    dropped = {c for j in model.joints if j.child not in keep for c in j.coordinates} - read
+    coords = [c for c in model.coordinates if c.name not in dropped]
+    names = tuple(c.name for c in coords)
+    if lock_root_rotations:
+        root = next(j for j in joints if j.parent == GROUND)
+        if not any(model.marker(m).body == root.child for m in markers):
+            rot = {c.name for c in coords if c.name in root.coordinates and c.kind == "rotational"}
+            coords = [replace(c, locked=True) if c.name in rot else c for c in coords]
+    couplings = None if model.couplings is None else model.couplings.without(dropped)
+    if couplings is not None:
+        couplings = couplings.over(names)
+    ineq = model.inequalities
+    if ineq is not None:
+        cols = [i for i, c in enumerate(ineq.coordinates) if c in dropped]
+        ok = ~np.any(ineq.matrix[:, cols] != 0, axis=1) if cols else np.ones(ineq.matrix.shape[0], bool)
+        ineq = None if not ok.any() else LinearInequalities(
+            ineq.coordinates, ineq.matrix[ok], ineq.rhs[ok], tuple(l for l, k in zip(ineq.labels, ok) if k)).over(names)
+    couplers = tuple(cp for cp in model.couplers if not ({cp.dependent, *cp.independent} & dropped))
+    out = model.replace(bodies=tuple(b for b in model.bodies if b.name in keep), joints=joints, coordinates=tuple(coords),
+                        markers=tuple(model.marker(m) for m in markers),
+                        frames=tuple(f for f in model.frames if f.body in keep), couplings=couplings,
+                        inequalities=ineq, couplers=couplers, name=f"{model.name} ({len(markers)}-marker leg)")
+    bad = undetermined_coordinates(out, markers)
+    if bad:
+        raise InputError(model.name, f"markers {', '.join(markers)} do not determine {', '.join(bad)} "
+                                     "(lock them or add markers)")
+    return out
+
+
+@dataclass(frozen=True)
+class TrackingProtocol:
+    """How the experiments run IK: markers tracked (equal weights), knees learnt, model used.
+
+    name : str
+    tracked : markers tracked (and scored by default)
+    sides : knees learnt and compared (``("r",)`` or ``("r", "l")``)
+    one_leg : IK on `leg_model` (the bodies the tracked markers observe) instead of the whole model
+    """
+
+    name: str
+    tracked: tuple[str, ...]
+    sides: tuple[str, ...]
+    one_leg: bool = False
+
+    def model(self, model: Model) -> Model:
+        """The IK model of this protocol built from the subject's `model`."""
+        return leg_model(model, self.tracked) if self.one_leg else model
+
+
+def seed_protocol(markers: Sequence[str] = tuple(SEED_MARKERS.values()), side: str = "r") -> TrackingProtocol:
+    """The seed's protocol (section 3.2): IK driven by seven markers of one leg only, equal weights, one knee."""
+    return TrackingProtocol("seed7", tuple(markers), (side,), one_leg=True)
+
+
+def whole_body_protocol(tracked: Sequence[str], sides: Sequence[str] = ("r", "l")) -> TrackingProtocol:
+    """IK of the whole model on every marker of `tracked` (pelvis and both legs), both knees learnt."""
+    return TrackingProtocol("whole-body", tuple(tracked), tuple(sides), one_leg=False)
