@@ -7,8 +7,9 @@ input frame; Z is the joint's main rotation axis:
 joint         origin                                       Z (main axis) / Y hint
 ============  ===========================================  =================================
 hip           femoral head centre                          pelvis ISB frame (Z = LASI->RASI)
-knee          midpoint of the femoral condyle centres      femoral condyle axis, to the right
-                                                           / Y towards the hip centre
+knee          point of the condyle cylinder axis between   cylinder through the posterior
+              the condyles (condyle centres' midpoint      condyles, to the right
+              projected on it)                             / Y towards the hip centre
 ankle         talar dome cylinder centre (mid-dome)        talar dome axis, to the right
                                                            / Y towards the knee centre
 subtalar      subtalar-axis point closest to the ankle     subtalar axis, anterior

@@ -52,6 +52,17 @@ def test_icl_joints_close_to_the_hand_built_model(icl, manual):
         assert "side_mismatch" not in res.flags and "name_mismatch" not in res.flags, (b, res.flags)
 
 
+def test_icl_knee_closer_to_the_hand_built_model_than_staple(icl, manual, shared_data):
+    # the knee axis is the cylinder through the posterior condyles, the hand-built
+    # model's convention: its centre must beat STAPLE's and its axis stay within 0.5 deg
+    _, J = icl
+    auto = read_reference_joints(shared_data / "reference_models" / "automatic_ICL_MRI.osim", use_opensim=False)
+    ours = compare_joints(J, manual, ["knee_r"])["knee_r"]
+    staple = compare_joints(auto, manual, ["knee_r"])["knee_r"]
+    assert ours["distance_mm"] < staple["distance_mm"]
+    assert ours["angle_deg"] < 0.5
+
+
 def test_icl_markers_close_to_staple_markers(icl, shared_data):
     import defusedxml.ElementTree as ET
 
@@ -75,3 +86,8 @@ def test_tlem2_both_sides_detected_with_their_side(shared_data, side):
     assert {f"knee_{side}", f"ankle_{side}"} <= set(J)
     # knee axis points to the subject's right on both sides: in the TLEM2 scan the right is -x
     assert J[f"knee_{side}"].rotation[0, 2] < -0.9
+    # a shallow tibial plafond (found among the concave distal patches) and a talus
+    # scanned plantarflexed (head confirmed by its sphere) are not low-confidence
+    for b in (f"tibia_{side}", f"talus_{side}"):
+        assert "low_confidence" not in ls.bones[b].flags, (b, ls.bones[b].notes)
+    assert "plafond_centre" in ls.bones[f"tibia_{side}"].landmarks

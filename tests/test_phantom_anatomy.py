@@ -114,6 +114,24 @@ def test_joints_are_congruent_and_defined(truth):
             np.testing.assert_allclose(R[:, 2], axis, atol=1e-12)
 
 
+def test_posterior_condyles_are_one_cylinder_about_the_knee_axis(ph, truth):
+    # the two knee-axis conventions of issue F3 coincide on the phantom: the
+    # posterior-distal arcs of both condyles (exact surface points, checked in
+    # test_exact_analytic_surfaces) lie on one cylinder about the truth knee axis,
+    # whose centre between the condyles is the knee joint origin
+    J = truth["joints"]["joints"]
+    checks = ph.surface_checks()
+    for s in "rl":
+        kp, kd = _axis(truth, f"femur_{s}", "knee_axis")
+        arcs = checks[f"femur_{s}.posterior_condyle_arcs"]
+        rho = np.linalg.norm(np.cross(arcs - kp, kd), axis=1)
+        r = truth["landmarks"]["bones"][f"femur_{s}"]["scalars"]
+        np.testing.assert_allclose(rho, r["medial_condyle_a"]["value"], atol=1e-12)
+        assert r["lateral_condyle_a"]["value"] == r["medial_condyle_a"]["value"] == r["medial_condyle_b"]["value"]
+        t = (arcs - np.array(J[f"knee_{s}"]["origin"])) @ kd
+        assert abs(t.min() + t.max()) < 1e-12 and t.max() > 0.015      # origin midway between the condyles
+
+
 def test_conventions_in_body_frame():
     ph = make_phantom(seed=1, placement="identity")
     t = ph.truth()

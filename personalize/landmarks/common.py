@@ -25,7 +25,7 @@ __all__ = [
     "principal_axes", "unit", "hough_centres", "refine_sphere", "refine_cylinder",
     "sphere_centre_cov", "axis_sd_deg", "line_through", "orient",
     "FLAG_TRUNCATED", "FLAG_LOW_CONFIDENCE", "FLAG_SIDE_MISMATCH", "FLAG_NAME_MISMATCH",
-    "FLAG_NOT_CLOSED",
+    "FLAG_NOT_CLOSED", "edge_curvature",
 ]
 
 FLAG_TRUNCATED = "truncated"
@@ -542,6 +542,29 @@ def _is_cut(V, Nrm, A, hh, direction, r_shaft) -> bool:
         return False
     side_cos = float(A[band] @ np.abs(cosn[band]) / A[band].sum())
     return bool(A[flat].sum() > 0.33 * sec and side_cos < 0.68)
+
+
+def edge_curvature(surface: Surface) -> np.ndarray:
+    r"""Mean normal curvature of the surface at each vertex (1/m; > 0 convex, < 0 concave).
+
+    For each mesh edge :math:`(i, j)` the normal curvature along it is
+    :math:`\kappa_{ij} = (n_j - n_i) \cdot (p_j - p_i) / \lVert p_j - p_i \rVert^2`
+    (outward normals: positive where the surface bends away, as on a sphere
+    of radius r, where it is 1/r); a vertex gets the mean over its edges,
+    i.e. an estimate of the mean curvature.  Cached on the surface.
+    """
+    H = surface.__dict__.get("_edge_curvature")
+    if H is not None:
+        return H
+    V, N, F = surface.vertices, surface.normals, surface.faces
+    e = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
+    dp = V[e[:, 1]] - V[e[:, 0]]
+    k = np.einsum("ij,ij->i", dp, N[e[:, 1]] - N[e[:, 0]]) / np.maximum(np.einsum("ij,ij->i", dp, dp), 1e-18)
+    ks = np.bincount(e[:, 0], k, len(V)) + np.bincount(e[:, 1], k, len(V))
+    cnt = np.bincount(e[:, 0], minlength=len(V)) + np.bincount(e[:, 1], minlength=len(V))
+    H = ks / np.maximum(cnt, 1)
+    object.__setattr__(surface, "_edge_curvature", H)
+    return H
 
 
 def largest_patch(surface: Surface, mask: np.ndarray, n: int = 1) -> list[np.ndarray]:

@@ -24,10 +24,10 @@ import numpy as np
 from kinematics.errors import FitError
 
 from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_TRUNCATED, Axis, BoneLandmarks, Landmark, Surface,
-                     extreme_vertex, hough_centres, line_through, long_bone_axes, orient,
+                     axis_sd_deg, extreme_vertex, hough_centres, line_through, long_bone_axes, orient,
                      perpendicular, refine_sphere, shaft_line, sphere_centre_cov, unit)
 
-__all__ = ["detect_femur", "head_coverage", "find_head"]
+__all__ = ["detect_femur", "head_coverage", "find_head", "posterior_condyle_cylinder"]
 
 HEAD_RADII = np.arange(0.012, 0.0331, 0.0015)      # adult 20-28 mm, juvenile from ~12 mm
 CONDYLE_RADII = np.arange(0.012, 0.0361, 0.0015)
@@ -296,15 +296,21 @@ def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise):
     The posterior and distal condylar surfaces (normals not facing anteriorly,
     i.e. not the trochlea) of the distal block are split at the notch into a
     medial and a lateral half.  Each half gets a robust sphere; the line
-    through the two sphere centres is the flexion (knee) axis -- both spheres
-    are biased alike on oval condyles, so the direction is robust.  Each
-    condyle centre is then the centre of an ellipsoid with one semi-axis
-    along that axis (`fit_ellipsoid_about_axis`, 7 parameters), fitted to the
+    through the two sphere centres is a first flexion axis.  Each condyle
+    centre is then the centre of an ellipsoid with one semi-axis along that
+    axis (`fit_ellipsoid_about_axis`, 7 parameters), fitted to the
     posterior-distal arc extended to 45 degrees anterior of the distal
     direction and refitted on the points within 3 rms; if either ellipsoid is
     implausible both condyles fall back to their spheres (noted).  The two
     semi-axes across the flexion axis are the condyle's sagittal ellipse
     (``*_condyle_a >= *_condyle_b``).
+
+    The knee (flexion) axis reported is the cylinder through the posterior
+    condyles (`posterior_condyle_cylinder`), the convention of hand-built
+    models (NMSBuilder) and of STAPLE; the knee centre
+    (``intercondylar_midpoint``) is the point of that axis between the
+    condyles: the condyle centres' midpoint projected on it.  Without a
+    cylinder the line through the condyle centres is kept (noted).
     """
     from personalize.fitting import fit_sphere
 
@@ -385,11 +391,36 @@ def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise):
             res.fits[f"{label}_condyle"] = _sphere_json(f, len(sels[label]))
     res.notes.append(f"condyles modelled as {'axis-constrained ellipsoids' if use_ell else 'spheres'}")
     m_lm, l_lm = res.landmarks["medial_condyle_centre"], res.landmarks["lateral_condyle_centre"]
-    mid_c = 0.5 * (m_lm.position + l_lm.position)
-    ax = Axis(point=mid_c, direction=ax.direction, sd_deg=ax.sd_deg)
-    res.axes["knee_axis"] = ax
     mid = 0.5 * (m_lm.position + l_lm.position)
-    res.landmarks["intercondylar_midpoint"] = Landmark(mid, 0.25 * (m_lm.cov + l_lm.cov))
+    mid_cov = 0.25 * (m_lm.cov + l_lm.cov)
+    # flexion axis: the cylinder through the posterior condyles (the convention of
+    # hand-built models and of STAPLE); the line through the condyle centres is the
+    # fallback when no cylinder can be fitted
+    # "distal" is taken from the shaft axis, not the mechanical axis, so that the
+    # result does not depend on whether the femoral head is in the field of view
+    cyl = posterior_condyle_cylinder(surface, cond_region, mid, ax.direction, sd, ant,
+                                     m_lm.position, l_lm.position)
+    if cyl is None:
+        res.notes.append("knee axis: no cylinder on the posterior condyles; line through the condyle centres")
+        ax = Axis(point=mid, direction=ax.direction, sd_deg=ax.sd_deg)
+    else:
+        fit, sel, u = cyl
+        u = orient(u, ax.direction)
+        p = np.asarray(fit.point, float)
+        # knee centre: the point of the cylinder axis between the condyles (the
+        # condyle centres' midpoint projected on it)
+        mid = p + float((mid - p) @ u) * u
+        Pp = np.eye(3) - np.outer(u, u)
+        mid_cov = Pp @ (np.asarray(fit.covariance)[:3, :3]) @ Pp + float(u @ mid_cov @ u) * np.outer(u, u)
+        mid_cov = mid_cov + 1e-12 * np.eye(3)
+        ax = Axis(point=mid, direction=u, sd_deg=axis_sd_deg(fit))
+        res.scalars["posterior_condyle_radius"] = float(fit.radius)
+        res.scalar_sd["posterior_condyle_radius"] = float(np.sqrt(max(np.asarray(fit.covariance)[-1, -1], 0.0)))
+        res.fits["posterior_condyles"] = {"type": "cylinder", "point": mid.tolist(), "axis": u.tolist(),
+                                          "radius": float(fit.radius), "rms": float(fit.rms),
+                                          "n_points": int(sel.sum()), "converged": bool(fit.converged)}
+    res.axes["knee_axis"] = ax
+    res.landmarks["intercondylar_midpoint"] = Landmark(mid, mid_cov)
     sep = float(np.linalg.norm(m_lm.position - l_lm.position))
     if not 0.02 < sep < 0.09:
         res.flag(FLAG_LOW_CONFIDENCE, f"condyle centres {sep * 1e3:.0f} mm apart")
@@ -399,6 +430,94 @@ def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise):
     k_med = extreme_vertex(surface, -u, dist_region, smooth=0.001)
     res.landmarks[f"{P}KNE"] = Landmark(V[k_lat].copy(), _iso(noise, 0.002))
     res.landmarks[f"{P}MFC"] = Landmark(V[k_med].copy(), _iso(noise, 0.002))
+
+
+#: posterior condyle arc used for the flexion-axis cylinder: surface normals from
+#: the distal (0 deg) to the posterior (90 deg) direction about the axis -- the
+#: tibiofemoral contact arc from full extension to 90 degrees of flexion
+POSTERIOR_ARC_DEG = (0.0, 90.0)
+#: largest |normal . axis| of a point used for the cylinder (24 deg off radial):
+#: leaves out the condyles' side walls and the rims rounded by smoothing
+CYL_AXIAL_MAX = 0.4
+#: half-width of each condyle's central band along the axis, as a fraction of
+#: the distance between the condyle centres (+-6 mm on an adult knee): the part
+#: of a condyle closest to a cylinder (its articular surface is also curved
+#: coronally, so a wider band pulls the radius in and the axis towards it)
+CONDYLE_BAND = 0.15
+
+
+def posterior_condyle_cylinder(surface: Surface, region: np.ndarray, centre, axis, up, ant, medial, lateral,
+                               iterations: int = 4):
+    r"""Cylinder through the posterior condyles (the knee flexion axis).
+
+    Model: one circular cylinder (axis line, radius) through the articular
+    arcs of both femoral condyles from the distal to the posterior point,
+    minimising the sum of squared orthogonal distances
+    :math:`\sum_i w_i (\lVert (I - a a^T)(x_i - p) \rVert - R)^2`
+    (`personalize.fitting.fit_cylinder`, weights w = vertex areas; robust
+    EM while the points are selected, then plain least squares on its
+    inliers).  The points are re-selected about the current axis on every
+    iteration: surface normal at an angle of ``POSTERIOR_ARC_DEG`` about the
+    axis from the distal direction (distal = away from ``up``, e.g. the
+    shaft axis, orthogonal to the axis) towards the posterior, within
+    ``CYL_AXIAL_MAX`` of radial, and in the central band of either condyle
+    (``CONDYLE_BAND`` of the condyle separation about its centre along the
+    axis).  Every
+    criterion is relative to the bone's own axes: the selection does not
+    depend on the bone's pose in the scanner.
+
+    Returns
+    -------
+    (fit, selected mask, unit axis) or None when fewer than 60 points qualify,
+    the fit fails or its radius leaves 10-45 mm.
+    """
+    from personalize.fitting import fit_cylinder
+
+    V, Nrm, A = surface.vertices, surface.normals, surface.areas
+    u = unit(np.asarray(axis, float))
+    p = np.asarray(centre, float)
+    sep = float(np.linalg.norm(np.asarray(medial) - np.asarray(lateral)))
+    lo, hi = np.radians(POSTERIOR_ARC_DEG)
+    fit = sel = None
+    for _ in range(iterations):
+        dist_dir = unit(perpendicular(-np.asarray(up, float), u))
+        post_dir = orient(np.cross(u, dist_dir), -np.asarray(ant, float))
+        th = np.arctan2(Nrm @ post_dir, Nrm @ dist_dir)
+        t = (V - p) @ u
+        tm, tl = (np.asarray(medial) - p) @ u, (np.asarray(lateral) - p) @ u
+        win = (np.abs(t - tm) < CONDYLE_BAND * sep) | (np.abs(t - tl) < CONDYLE_BAND * sep)
+        new = region & win & (th >= lo) & (th <= hi) & (np.abs(Nrm @ u) < CYL_AXIAL_MAX)
+        if new.sum() < 60:
+            if fit is None:
+                return None
+            break
+        if sel is not None and np.array_equal(new, sel):
+            break
+        sel = new
+        try:
+            fit = fit_cylinder(V[sel], normals=Nrm[sel], weights=A[sel], axis_hint=u)
+        except FitError:
+            return None
+        u = orient(unit(np.asarray(fit.axis, float)), u)
+        q = np.asarray(fit.point, float)
+        p = q + float((p - q) @ u) * u
+    if fit is None:
+        return None
+    # final plain least-squares fit on the robust fit's inliers: it converges to
+    # the solver's tight step tolerance, where the EM stops on its weights, so
+    # the result moves with the bone to well under 0.01 mm / 0.01 degree
+    keep = sel.copy()
+    keep[sel] = np.asarray(fit.inlier_weights) > 0.5
+    if keep.sum() >= 60:
+        try:
+            fit = fit_cylinder(V[keep], normals=Nrm[keep], weights=A[keep], axis_hint=u, robust=False)
+            sel = keep
+            u = orient(unit(np.asarray(fit.axis, float)), u)
+        except FitError:
+            pass
+    if not 0.010 < float(fit.radius) < 0.045:
+        return None
+    return fit, sel, u
 
 
 def _condyle_about_axis(V, A, sel, sphere, axis, ant):

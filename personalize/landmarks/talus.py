@@ -153,13 +153,18 @@ def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | No
         if right_hint is None:
             u = -u                               # keep (fwd, up, u) right-handed: u to the right
             res.axes["ankle_axis"] = Axis(point=p.copy(), direction=u, sd_deg=res.axes["ankle_axis"].sd_deg)
-    elif right_hint is not None and q.max() < 1.2 * -q.min():
-        res.flag(FLAG_LOW_CONFIDENCE, "talar head not clearly anterior")
+    # With the foot plantarflexed in the scanner the head, which points
+    # antero-inferiorly, projects little farther along `fwd` than the
+    # posterior process: the extents alone are then ambiguous, and the
+    # direction is confirmed by a talar head sphere found at the anterior end.
+    ambiguous = right_hint is not None and -q.min() <= q.max() < 1.2 * -q.min()
     ant = fwd
     res.frames["anatomical"] = {"origin": p.copy(), "rotation": np.column_stack([ant, up, np.cross(ant, up)])}
 
     # ---- subtalar axis --------------------------------------------------------------------
     _subtalar(surface, res, p, float(fit.radius), ant, up, calcaneus)
+    if ambiguous and "talar_head_centre" not in res.landmarks:
+        res.flag(FLAG_LOW_CONFIDENCE, "talar head not clearly anterior")
     return res
 
 

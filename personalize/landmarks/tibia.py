@@ -25,8 +25,8 @@ from kinematics.errors import FitError
 from personalize.fitting import fit_cylinder
 
 from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_TRUNCATED, Axis, BoneLandmarks, Landmark,
-                     Surface, axis_sd_deg, extreme_vertex, largest_patch, long_bone_axes, orient, perpendicular,
-                     principal_axes, refine_cylinder, shaft_line, unit)
+                     Surface, axis_sd_deg, edge_curvature, extreme_vertex, largest_patch, long_bone_axes, orient,
+                     perpendicular, principal_axes, refine_cylinder, shaft_line, unit)
 
 __all__ = ["detect_tibia", "detect_fibula", "split_components", "merge_surfaces", "tibia_surface"]
 
@@ -249,22 +249,31 @@ def _plafond(tib: Surface, res: BoneLandmarks, hp, bot, sd, right, ant):
     """Cylinder fitted to the concave distal articular surface (plafond).
 
     Candidates are the largest connected patches of distal-facing surface in
-    the distal 6 cm; each gets a cylinder fit (axis hint: medio-lateral) and
-    a band refinement; the largest patch whose cylinder is concave (normals
-    towards the axis) with a plausible radius (1-4.5 cm) wins.  The malleolar
-    tips, also distal-facing, are convex and rejected.
+    the distal 6 cm, and the largest patches of its concave part (negative
+    mean curvature, `common.edge_curvature`): on a shallow plafond the convex
+    anterior and posterior lips and the malleolus joined to it make the whole
+    patch fit a convex cylinder.  Each candidate gets a cylinder fit (axis
+    hint: medio-lateral) and a band refinement; the largest patch whose
+    cylinder is concave (normals towards the axis) with a plausible radius
+    (2-sd interval meeting 1-4.5 cm) wins.  The malleolar tips, also
+    distal-facing, are convex and rejected.
     """
     V, Nrm = tib.vertices, tib.normals
     region = (hp < bot + 0.06) & (Nrm @ (-sd) > 0.5)
     best = None
-    for patch in largest_patch(tib, region, 3):
+    candidates = largest_patch(tib, region, 3) + largest_patch(tib, region & (edge_curvature(tib) < 0), 2)
+    for patch in candidates:
         if patch.sum() < 20:
             continue
         try:
             f0 = fit_cylinder(V[patch], normals=Nrm[patch], axis_hint=right)
             d = V[patch] - f0.point
             radial = d - np.outer(d @ f0.axis, f0.axis)
-            if np.mean(np.einsum("ij,ij->i", radial, Nrm[patch])) >= 0 or not 0.01 < f0.radius < 0.045:
+            # plausible radius: its 2-sd interval meets 1-4.5 cm (a shallow plafond's
+            # radius is uncertain by several millimetres)
+            r_sd = 2.0 * float(np.sqrt(max(np.asarray(f0.covariance)[-1, -1], 0.0)))
+            if np.mean(np.einsum("ij,ij->i", radial, Nrm[patch])) >= 0 or not (
+                    f0.radius - r_sd < 0.045 and f0.radius + r_sd > 0.01):
                 continue                            # convex or implausible: not the plafond
             fit, sel, p, u = refine_cylinder(V, Nrm, f0.point, f0.axis, f0.radius,
                                              band=max(0.0015, 0.08 * f0.radius), convex=False, min_cos=0.6,
