@@ -43,16 +43,31 @@ Frames: every estimate is compared in the lab frame of the static trial
 mapped to it by the rigid transform that carries truth.json's joint centres
 onto the true static joint centres of ``truth/static_centres.trc``.
 
-Uncertainty floors.  The motion estimates' covariances from their own
-residuals ignore the soft-tissue artefact, which is systematic; they are
-floored at the accuracy of functional methods on skin markers:
-hip centre sd `MOTION_HIP_SD` = (anterior, medio-lateral, proximal-distal)
-in the pelvis axes (thigh skin slides mostly along the femur, Cappozzo et al.
-1996; functional hip centres are off by 1-2 cm under such artefact, Ehrig
-et al. 2006, Camomilla et al. 2006), knee axis `MOTION_KNEE_AXIS_SD_DEG`,
+Uncertainty.  Every source's covariance is meant to be honest (Mahalanobis
+distances of its errors ~ χ²₃ on held-out phantoms).  The hip centres, the
+estimate the fusion matters most for, use error models calibrated on
+TRAINING phantom subjects (`benchmarks/fusion_cache.py` then
+`benchmarks/fusion_calibration.py`; validation seeds are never used):
+
+* MRI: the hip centre's error is the pelvis registration's (the femoral head
+  centre itself is found to ~0.1 mm); the registration's propagated
+  covariance (skin thickness sd, marker placement sd, landmark covariances)
+  keeps its structure and its cross-covariance between the two hips (one
+  shared registration) and is scaled by `MRI_HIP_COV_SCALE`;
+* motion: SCoRE's residual covariance ignores the soft-tissue artefact,
+  which is systematic (its Mahalanobis distances were ~3000 instead of 3);
+  the artefact term `MOTION_HIP_STA_COV` (pelvis axes: anterior, medial, up;
+  thigh skin slides mostly along the femur, Cappozzo et al. 1996; functional
+  hip centres are off by 1-2 cm under such artefact, Ehrig et al. 2006) is
+  added to it.
+
+Both hip centres are then fused jointly (`personalize.fusion.fuse_linear`: the
+6-vector of the two MRI hips with its full covariance, and each side's SCoRE
+centre), so a functional centre also corrects the registration error the
+other hip shares.  The knee axes are calibrated the same way
+(`MRI_KNEE_AXIS_SD_SCALE`, `MOTION_KNEE_AXIS_SD_DEG`).  Other floors:
 transmalleolar ankle axis `MOTION_ANKLE_AXIS_SD_DEG`, Plug-in-Gait
-knee/ankle centres `PIG_CENTRE_SD`.  These values match the errors measured
-on the motion phantoms (benchmarks/pipeline_phantoms.py).
+knee/ankle centres `PIG_CENTRE_SD`.
 """
 from __future__ import annotations
 
@@ -68,10 +83,23 @@ from kinematics.errors import FitError, InputError
 from kinematics.markers import MarkerTrial
 
 __all__ = ["run_subject", "SubjectInputs", "find_inputs", "estimate_joints", "JointEstimates", "fit_knee_laws",
-           "truth_in_static_lab", "errors_against_truth", "write_phantom_subject", "SHORT_TRIALS", "MOTION_HIP_SD", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD"]
+           "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES", "write_phantom_subject", "SHORT_TRIALS", "MRI_HIP_COV_SCALE", "MOTION_HIP_STA_COV", "fuse_hips", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD"]
 
-MOTION_HIP_SD = (0.006, 0.010, 0.016)
-MOTION_KNEE_AXIS_SD_DEG = 6.0
+#: Hip error models, calibrated on 24 TRAINING phantom subjects (48 legs; `personalize.validate.draw_subjects(24,
+#: seed=1000)`, never a validation seed; benchmarks/results/fusion_calibration*.json; a 12/12 split of the same
+#: subjects checks them on held-out legs).
+#: Variance scale of the registration-propagated MRI hip covariance: mean Mahalanobis d² = 3 on the training legs.
+#: The registration model assumes 3 mm palpation and skin-thickness sds; the phantoms' marker placement is exact,
+#: so their registration errors are smaller (use 1.0 where palpation errors are real and unknown).
+MRI_HIP_COV_SCALE = 0.18
+#: soft-tissue-artefact covariance of a SCoRE hip centre (m²) in the pelvis axes (anterior, medial, up; left legs
+#: mirrored): the second moment about zero of the training legs' SCoRE errors (sds 4.8, 7.3, 10.7 mm)
+MOTION_HIP_STA_COV = np.array([[23.1, 2.2, -19.8], [2.2, 53.6, 15.3], [-19.8, 15.3, 114.1]]) * 1e-6
+#: Knee axes, calibrated on the same 24 training subjects (per tangent component, E angle² = 2 sd²): the MRI
+#: (femur registration) axis sd is scaled by MRI_KNEE_AXIS_SD_SCALE (the claimed 2.2 deg median vs 1.0 deg rms actual),
+#: the SARA axis on skin-marker clusters gets the soft-tissue-artefact sd MOTION_KNEE_AXIS_SD_DEG (12 deg rms actual)
+MRI_KNEE_AXIS_SD_SCALE = 0.30
+MOTION_KNEE_AXIS_SD_DEG = 8.6
 MOTION_ANKLE_AXIS_SD_DEG = 6.0
 PIG_CENTRE_SD = 0.010
 #: fall-backs without functional data: Davis regression hip centre (errors ~1-3 cm, Leardini et al. 1999),
@@ -205,12 +233,19 @@ def _cluster_pose(static: MarkerTrial, trials, names):
     return rigid_pose(ref, meas)
 
 
-def motion_hip(static, functional: MarkerTrial, side: str, axes=None):
-    """SCoRE hip centre (static lab frame, m) and covariance.
+def _sta_cov(axes, side: str) -> np.ndarray:
+    """`MOTION_HIP_STA_COV` in the lab: A M Σ M Aᵀ (A the pelvis axes, M mirrors y for a left leg)."""
+    M = np.diag([1.0, -1.0 if side == "l" else 1.0, 1.0])
+    A = np.eye(3) if axes is None else np.asarray(axes, float)
+    return A @ M @ MOTION_HIP_STA_COV @ M @ A.T
 
-    The covariance from the SCoRE residuals is floored by the soft-tissue
-    artefact: `MOTION_HIP_SD` = (anterior, medio-lateral, proximal-distal) sd
-    in the pelvis axes `axes` (3x3, columns x, y, z; the static lab axes if None).
+
+def motion_hip(static, functional: MarkerTrial, side: str, axes=None):
+    """SCoRE hip centre (static lab frame, m) and its covariance.
+
+    Cov = SCoRE's residual covariance + the soft-tissue-artefact term
+    `MOTION_HIP_STA_COV` (pelvis axes `axes`, 3x3 columns x, y, z; the static
+    lab axes if None).
     """
     from kinematics.functional import score
 
@@ -220,10 +255,57 @@ def motion_hip(static, functional: MarkerTrial, side: str, axes=None):
     if P is None or D is None:
         raise InputError(functional.source, f"SCoRE needs 3 pelvis and 3 {S} thigh markers")
     est = score(P.R, P.t, D.R, D.t)
-    floor = np.diag(np.asarray(MOTION_HIP_SD, float) ** 2 * np.ones(3))
-    if axes is not None:
-        floor = axes @ floor @ axes.T
-    return est.proximal, est.cov_proximal + floor, est
+    return est.proximal, est.cov_proximal + _sta_cov(axes, side), est
+
+
+def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None = None):
+    """Joint Gaussian fusion of both hip centres from one pelvis registration and per-side motion centres.
+
+    Model: z_mri = (h_r, h_l) + e_mri with e_mri ~ N(0, k C₆), C₆ the
+    registration-propagated covariance of the two transferred centres
+    (`Registration.transfer_points`: C₆[a, b] = J_a Cov(reg) J_bᵀ + δ_ab R C_a Rᵀ,
+    the off-diagonal blocks being the shared registration error), k = `mri_scale`;
+    z_mot,s = h_s + e_s, e_s ~ N(0, C_s) independent.  The generalised
+    least-squares solution (`personalize.fusion.fuse_linear`) minimises
+    (z - H h)ᵀ Σ⁻¹ (z - H h) over h = (h_r, h_l).
+    k defaults to `MRI_HIP_COV_SCALE`.
+
+    Parameters
+    ----------
+    reg : Registration of the pelvis (scanner -> static lab)
+    hips_scanner : {side: (origin (3,) m, origin_cov (3, 3) m²)}, scanner frame
+    motion : {side: (x (3,) m, C (3, 3) m²)}, static lab frame
+
+    Returns
+    -------
+    mri : {side: (x, C)} lab MRI centres (scaled covariance); fused : {side: Fused}
+        (names ("mri", "motion"), weights the own-side 3x3 blocks); joint : Fused of the 6-vector
+    """
+    from .fusion import Fused, fuse_linear
+
+    mri_scale = MRI_HIP_COV_SCALE if mri_scale is None else float(mri_scale)
+    sides = [s for s in ("r", "l") if s in hips_scanner]
+    n = len(sides)
+    Y, C = reg.transfer_points([hips_scanner[s][0] for s in sides], [hips_scanner[s][1] for s in sides])
+    ys = dict(zip(sides, Y))
+    # + (0.1 mm)² per point (the femoral head centres' detection error on the phantoms): two points alone do not
+    # see a rotation about the line through them, so the registration part is singular along that direction
+    C = mri_scale * C + 1e-8 * np.eye(3 * n)
+    H = np.eye(3 * n)
+    obs = [(np.concatenate([ys[s] for s in sides]), C, H)]
+    names = ["mri"]
+    for i, s in enumerate(sides):
+        obs.append((motion[s][0], motion[s][1], H[3 * i:3 * i + 3]))
+        names.append(f"motion_{s}")
+    joint = fuse_linear(obs, names)
+    mri, fused = {}, {}
+    for i, s in enumerate(sides):
+        b = slice(3 * i, 3 * i + 3)
+        mri[s] = (ys[s], C[b, b])
+        W = np.array([joint.weights[0][b, b], joint.weights[1 + i][b, b]])
+        fused[s] = Fused(joint.mean[b], joint.cov[b, b], W, np.trace(W, axis1=1, axis2=2) / 3.0, joint.chi2,
+                         joint.dof, joint.p_value, ("mri", "motion"))
+    return mri, fused, joint
 
 
 def motion_knee_axis(static, trials, side: str):
@@ -247,7 +329,8 @@ class JointEstimates:
 
     centres[side][joint] = {"mri": (x, C), "motion": (x, C), "fused": Fused}
     axes[side][joint] = {"mri": (u, sd_deg), "motion": (u, sd_deg), "fused": FusedAxis}
-    extra: registrations, pelvis frame, notes, sources
+    extra: registrations, pelvis frame, notes, sources; hip_joint: the joint `Fused` of both hip
+    centres (6-vector r, l; sources "mri", "motion_r", "motion_l")
     """
 
     centres: dict = field(default_factory=dict)
@@ -257,6 +340,7 @@ class JointEstimates:
     notes: list = field(default_factory=list)
     sources: dict = field(default_factory=dict)
     points: dict = field(default_factory=dict)
+    hip_joint: object = None
 
 
 def _aliased_static(static: MarkerTrial) -> MarkerTrial:
@@ -392,16 +476,15 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
         dynamic = list(inputs.trials.values())
     functional = inputs.trials[inputs.functional] if inputs.functional else None
     rec_static = _pig_static(inputs)
+    j = joints_json
+    hips_scanner, hip_motion = {}, {}
     for s in inputs.sides:
         S = s.upper()
-        c, a = {}, {}
-        j = joints_json
-        # ---- hip
         for jn in ("hip", "knee", "ankle"):
             if f"{jn}_{s}" not in j:
                 why = (dropped or {}).get(f"{jn}_{s}", "not detected")
                 raise InputError(inputs.bones, f"no {jn}_{s} joint from the MRI bones ({why})")
-        h_mri = regs["pelvis"].transfer_point(j[f"hip_{s}"]["origin"], j[f"hip_{s}"]["origin_cov"])
+        hips_scanner[s] = (j[f"hip_{s}"]["origin"], j[f"hip_{s}"]["origin_cov"])
         say(f"hip {S}: functional centre")
         try:
             trial = functional if functional is not None else dynamic[0]
@@ -413,18 +496,29 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
             C = DAVIS_HIP_SD**2 * np.eye(3)
             out.sources[f"hip_{s}_motion"] = "Plug-in-Gait (Davis) regression of the static trial"
             out.notes.append(f"hip {S}: no functional hip centre ({exc}); Plug-in-Gait regression used")
-        hf = fuse_gaussian([h_mri, (x, C)], ("mri", "motion"))
-        c["hip"] = {"mri": h_mri, "motion": (x, C), "fused": hf}
-        # ---- femur registration: epicondyle markers + the fused hip centre
+        hip_motion[s] = (x, C)
+    # both hips at once: their MRI estimates share the pelvis registration error
+    hip_mri, hip_fused, hip_joint = fuse_hips(regs["pelvis"], hips_scanner, hip_motion)
+    out.hip_joint = hip_joint
+    for s in inputs.sides:
+        S = s.upper()
+        c, a = {}, {}
+        hf = hip_fused[s]
+        c["hip"] = {"mri": hip_mri[s], "motion": hip_motion[s], "fused": hf}
+        # ---- femur registration: epicondyle markers + the fused hip centre.  The registration's marker noise
+        # model is the uncalibrated (conservative) one, so the hip anchor enters on that scale too
+        # (cov / MRI_HIP_COV_SCALE): otherwise the calibrated hip would outweigh the knee markers.
         k_pig = (np.median(rec_static.centres[f"knee_{s}"], axis=0), PIG_CENTRE_SD**2 * np.eye(3))
         a_pig = (np.median(rec_static.centres[f"ankle_{s}"], axis=0), PIG_CENTRE_SD**2 * np.eye(3))
         reg_f = _register_with_centre(f"femur_{s}", bones, [f"femur_{s}"], (f"{S}KNE", f"{S}MFC", f"{S}TRO"), static_pos,
-                                      surfaces, (j[f"hip_{s}"]["origin"], j[f"hip_{s}"]["origin_cov"]), (hf.mean, hf.cov),
+                                      surfaces, (j[f"hip_{s}"]["origin"], j[f"hip_{s}"]["origin_cov"]),
+                                      (hf.mean, hf.cov / MRI_HIP_COV_SCALE),
                                       axis=_joint_axis(j[f"knee_{s}"]),
                                       fallback=[("pig_knee_centre", j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"], *k_pig)])
         out.registrations[f"femur_{s}"] = reg_f
         k_mri = reg_f.transfer_point(j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"])
         ku, ksd, _ = reg_f.transfer_direction(np.asarray(j[f"knee_{s}"]["rotation"])[:, 2], j[f"knee_{s}"]["axis_sd_deg"])
+        ksd *= MRI_KNEE_AXIS_SD_SCALE
         say(f"knee {S}: functional axis")
         try:
             kd, kdsd, kp, kpc = motion_knee_axis(inputs.static, dynamic, s)
@@ -568,6 +662,49 @@ def errors_against_truth(est: JointEstimates, truth: dict) -> dict:
         if rows:
             worst[key] = {src: max(r[src] for r in rows) for src in ("mri", "motion", "fused")}
     return {"worst": worst, "per_side": per_side}
+
+
+#: joint angles compared with the phantom truth (both sides)
+TRUTH_ANGLES = ("hip_flexion", "hip_adduction", "hip_rotation", "knee_flexion", "ankle_angle")
+
+
+def angle_errors_against_truth(inputs: SubjectInputs, ik_results: dict, rotational) -> dict:
+    """Joint-angle RMSE (deg) of the personalised model's IK against the phantom's true coordinates.
+
+    For every gait trial with ``truth/<trial>.mot`` (else every non-functional
+    dynamic trial), per coordinate of `TRUTH_ANGLES` and side:
+    RMSE = √(mean_t (q_IK(t) - q_true(t))²) over the frames of all those trials
+    (same coordinate names and conventions; a definitional offset between the
+    personalised and the true joint frames counts as error).
+
+    Returns
+    -------
+    rmse : dict coordinate (e.g. ``knee_flexion_r``) -> RMSE deg (empty when no truth is available)
+    offset : dict coordinate -> mean (q_IK - q_true) deg, the constant part of the error (e.g. a
+        personalised joint frame whose zero differs from the truth's)
+    """
+    from kinematics.storage import read_mot
+
+    names = [k for k in ik_results if k.startswith("gait")] or [k for k in ik_results if k != "static"
+                                                                 and not k.startswith("functional")]
+    sq: dict[str, list] = {}
+    for k in names:
+        path = inputs.folder / "truth" / f"{k}.mot"
+        if not path.is_file():
+            continue
+        tab = read_mot(path)
+        res = ik_results[k]
+        for c in (f"{a}_{s}" for s in inputs.sides for a in TRUTH_ANGLES):
+            if c not in tab.columns or c not in res.coordinates or c not in rotational:
+                continue
+            qt = tab.values[:, tab.columns.index(c)]
+            qt = qt if tab.in_degrees else np.degrees(qt)
+            qi = np.degrees(res.q[:, res.coordinates.index(c)])
+            qt = np.interp(res.time, tab.time, qt)
+            d = qi - qt
+            sq.setdefault(c, []).append(d[np.isfinite(d)])
+    sq = {c: np.concatenate(v) for c, v in sq.items() if sum(map(len, v))}
+    return ({c: float(np.sqrt(np.mean(d**2))) for c, d in sq.items()}, {c: float(np.mean(d)) for c, d in sq.items()})
 
 
 # --------------------------------------------------------------------------- model
@@ -719,7 +856,16 @@ def _report(path: Path, summary: dict, est: JointEstimates, ik: dict, ls, surfac
     t_axes = Table(["axis", "source", "x", "y", "z", "sd (deg)", "weights"], arows, caption="Joint axes (unit vectors, static lab frame)")
     sections = [Section("Subject", [f"Folder: {summary['subject_dir']}", f"Sides: {', '.join(summary['sides'])}",
                                     f"Trials: {', '.join(summary['trials'])}"] + list(summary.get("notes", [])))]
-    sections.append(Section("Per-joint estimates: MRI, motion and fused", [t_centres, t_axes]))
+    est_items = [t_centres, t_axes]
+    if est.hip_joint is not None:
+        hj = est.hip_joint
+        est_items.insert(1, "Hip centres are fused jointly (generalised least squares): both MRI hips share the pelvis "
+                            "registration error, so each functional centre also corrects the other hip. Weights (share of "
+                            "the 6-vector's information): " + ", ".join(f"{n} {w:.2f}" for n, w in zip(hj.names, hj.shares))
+                         + f"; agreement χ² = {hj.chi2:.1f} ({hj.dof} dof, p = {hj.p_value:.2g}). MRI hip covariance = "
+                           f"registration covariance x {MRI_HIP_COV_SCALE:g}; SCoRE covariance includes the soft-tissue-"
+                           "artefact term (both calibrated on training phantoms).")
+    sections.append(Section("Per-joint estimates: MRI, motion and fused", est_items))
     if "errors" in summary:
         er = [[k, *(round(v[s], 2) for s in ("mri", "motion", "fused"))] for k, v in summary["errors"].items()]
         sections.append(Section("Errors against the phantom truth (worst side)",
@@ -789,8 +935,35 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
 
     Raises
     ------
-    InputError : bad subject folder (one line naming the file and the problem)
+    InputError : bad subject folder (one line naming the file and the problem); with
+        `report`, ``report.html`` stating the error is still written into `out` (atomically;
+        nothing else is)
     """
+    try:
+        return _run_subject(subject_dir, out, seed=seed, progress=progress, report=report)
+    except InputError as exc:
+        if report:
+            _refusal_report(Path(out), subject_dir, exc)
+        raise
+
+
+def _refusal_report(out: Path, subject_dir, exc: InputError) -> None:
+    """``out/report.html`` of a refused subject: the error, and what a subject folder holds."""
+    from .report import Section, render_report
+
+    out.mkdir(parents=True, exist_ok=True)
+    render_report(inside(out, "report.html"), f"Personalised model: {Path(subject_dir).name} refused", [
+        Section("Input error", [str(exc), "The subject was refused: no model, kinematics or summary.json was written."]),
+        Section("What a subject folder holds", [
+            "labels.nii.gz (+ label_map.json) or bones/; static.c3d; at least one motion trial C3D "
+            "(functional_hip*.c3d calibrates the hip centres); subject.json (height, mass, Plug-in-Gait "
+            "measurements). Every trial must be of the same subject (same pelvis marker distances) and the "
+            "labels and markers must share a side."])],
+        meta="units: none; frame: none")
+
+
+def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool = True) -> dict:
+    """`run_subject` without the refusal report."""
     from kinematics.ik import solve_ik
     from kinematics.storage import write_mot, write_sto
 
@@ -834,6 +1007,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
     truth = truth_in_static_lab(inputs)
     summary: dict = {"subject": inputs.folder.name, "subject_dir": str(inputs.folder), "sides": list(sides),
                      "units": {"centres": "m (mm where named *_mm)", "axes": "unit vectors", "angles": "deg where named *_deg",
+                               "angle_rmse_deg": "per coordinate, RMSE of the IK angle against the phantom truth over the gait trials, deg",
+                               "angle_offset_deg": "per coordinate, mean IK - true angle over the gait trials (constant part of the error), deg",
                                "ik_rms_mm": "largest over the dynamic trials of the mean per-frame RMS marker error, mm",
                                "errors": "worst side; *_mm Euclidean distance, *_deg angle between axes (sign-free)"},
                      "frame": "lab frame of the static trial (X forward, Y left, Z up)",
@@ -846,6 +1021,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
     for s in sides:
         for jn, e in est.centres[s].items():
             est_json[f"{jn}_{s}_centre"] = {src: np.asarray(e[src][0]).tolist() for src in ("mri", "motion")}
+            est_json[f"{jn}_{s}_centre"].update({f"{src}_cov": np.asarray(e[src][1]).tolist() for src in ("mri", "motion")})
             est_json[f"{jn}_{s}_centre"]["fused"] = e["fused"].summary()
         for jn, e in est.axes[s].items():
             est_json[f"{jn}_{s}_axis"] = {src: {"direction": np.asarray(e[src][0]).tolist(), "sd_deg": float(e[src][1])}
@@ -853,6 +1029,12 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
             f = e["fused"]
             est_json[f"{jn}_{s}_axis"]["fused"] = {"direction": f.direction.tolist(), "sd_deg": f.sd_deg,
                                                    "weights": dict(zip(f.names, f.shares.tolist())), "p_value": f.p_value}
+    if est.hip_joint is not None:
+        hj = est.hip_joint
+        est_json["hips_joint_fusion"] = {
+            "state": [f"hip_{s}_{a}" for s in sides for a in "xyz"], "mean": hj.mean.tolist(), "cov": hj.cov.tolist(),
+            "weights": dict(zip(hj.names, hj.shares.tolist())), "chi2": hj.chi2, "dof": hj.dof, "p_value": hj.p_value,
+            "method": "generalised least squares of both MRI hips (registration cross-covariance) and each side's motion centre"}
     summary["estimates"] = est_json
     summary["registration"] = {k: {"rms_mm": r.rms * 1e3, "used": list(r.names), "rejected": list(r.rejected)}
                                for k, r in est.registrations.items()}
@@ -883,6 +1065,10 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
         dyn = [v["rms_mean_mm"] for k, v in ik_summary.items() if k != "static"]
         summary["ik_rms_mm"] = float(max(dyn)) if dyn else ik_summary["static"]["rms_mean_mm"]
         if truth is not None:
+            ang, off = angle_errors_against_truth(inputs, ik_results, rot)
+            if ang:
+                summary["angle_rmse_deg"] = ang
+                summary["angle_offset_deg"] = off
             err = errors_against_truth(est, truth)
             summary["errors"] = {k: err["worst"][k] for k in ("hip_centre_mm", "knee_axis_deg", "ankle_axis_deg",
                                                                "knee_centre_mm", "ankle_centre_mm") if k in err["worst"]}

@@ -165,6 +165,31 @@ class Registration:
             C = C + self.R @ np.asarray(cov, float).reshape(3, 3) @ self.R.T
         return y, 0.5 * (C + C.T)
 
+    def transfer_points(self, points, covs=None) -> tuple[np.ndarray, np.ndarray]:
+        """Lab positions of K scanner points and their joint covariance.
+
+        y_a = R p_a + t;  Cov(y_a, y_b) = J_a Cov(x) J_bᵀ + δ_ab R C_a Rᵀ
+        (J = [-[y - c]×, I]): every point shares the registration error, so
+        points of one segment (e.g. both hip centres of the pelvis) are correlated.
+
+        Parameters
+        ----------
+        points : (K, 3) m, scanner frame; covs : (K, 3, 3) m² or None (exact points)
+
+        Returns
+        -------
+        y : (K, 3) m lab; cov : (3K, 3K) m², blocks in the order of the points
+        """
+        P = np.asarray(points, float).reshape(-1, 3)
+        Y = P @ self.R.T + self.t
+        J = np.concatenate([self._jacobian(y) for y in Y], axis=0)  # (3K, 6)
+        C = J @ self.cov @ J.T
+        if covs is not None:
+            Cs = np.asarray(covs, float).reshape(len(P), 3, 3)
+            for k, c in enumerate(Cs):
+                C[3 * k:3 * k + 3, 3 * k:3 * k + 3] += self.R @ c @ self.R.T
+        return Y, 0.5 * (C + C.T)
+
     def transfer_direction(self, direction, sd_deg: float = 0.0) -> tuple[np.ndarray, float, np.ndarray]:
         """Lab direction of a scanner unit vector with its angular uncertainty.
 

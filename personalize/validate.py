@@ -14,6 +14,7 @@ Layout of ``OUT``::
     results/<id>/             the job's outputs and summary.json
     results/batch.csv         status per subject
     metrics.csv               one row per subject: draws + flattened metrics
+    fusion.json               fused vs each source: fractions of subjects / legs, medians (pipeline job)
     report.html               tables and distribution plots (self-contained)
 
 Metrics are whatever the job's summary holds, flattened with dots: for the full
@@ -327,6 +328,39 @@ def read_metrics(path: str | os.PathLike) -> list[dict]:
     return rows
 
 
+#: quantities estimated by both sources and fused (summary ``errors`` keys)
+FUSED_QUANTITIES = ("hip_centre_mm", "knee_axis_deg", "ankle_axis_deg", "knee_centre_mm", "ankle_centre_mm")
+
+
+def fusion_statistics(rows: Sequence[dict]) -> list[dict]:
+    """How the fused estimates compare with each source, per subject (worst side) and per leg.
+
+    For every quantity of `FUSED_QUANTITIES` present in the rows' metrics
+    (``errors.<q>.<source>`` worst side; ``errors_per_side.<side>.<q>.<source>`` per leg):
+    the fraction of cases where the fused error is below both sources', below
+    the MRI-only one and below the motion-only one, and the median error of each source.
+    """
+    out = []
+    for q in FUSED_QUANTITIES:
+        for unit, prefixes in (("subject (worst side)", [f"errors.{q}."]),
+                               ("leg", [f"errors_per_side.{s}.{q}." for s in ("r", "l")])):
+            e = []
+            for r in rows:
+                for p in prefixes:
+                    v = [r.get(p + src) for src in SOURCES]
+                    if all(isinstance(x, float) and math.isfinite(x) for x in v):
+                        e.append(v)
+            if not e:
+                continue
+            e = np.array(e)
+            out.append({"quantity": q, "unit": unit, "n": len(e),
+                        "fused_below_both": float(np.mean(e[:, 2] < e[:, :2].min(axis=1))),
+                        "fused_below_mri": float(np.mean(e[:, 2] < e[:, 0])),
+                        "fused_below_motion": float(np.mean(e[:, 2] < e[:, 1])),
+                        **{f"median_{src}": float(np.median(e[:, i])) for i, src in enumerate(SOURCES)}})
+    return out
+
+
 # --------------------------------------------------------------------------- report
 def _box_figure(group: str, items: list[tuple[str, str]], rows: Sequence[dict]):
     from .report import new_figure
@@ -398,6 +432,11 @@ def validation_report(path: str | os.PathLike, rows: Sequence[dict], metric_colu
             items.append(Figure(_box_figure(g, members, ok),
                                 caption=f"{g}: box = quartiles, whiskers = 1.5 IQR, dots = subjects"))
     sections.append(Section("Metrics", items))
+    fus = fusion_statistics(ok)
+    if fus:
+        sections.append(Section("Fusion against each source", [Table.from_records(
+            fus, caption="Fraction of subjects (worst side) and of legs where the fused error is below both "
+                         "sources', below the MRI-only and below the motion-only error; median errors (mm or deg)")]))
     other_stats = metric_statistics(ok, other)
     if other_stats:
         sections.append(Section("Other summary quantities", [Table.from_records(
@@ -480,6 +519,10 @@ def run_validation(n: int, seed: int, out: str | os.PathLike, *, scheduler=None,
         rows.append(row)
     mcols = list(metric_cols)
     csv_path = _write_csv(inside(out, "metrics.csv"), ["subject", "status", *factor_cols, *mcols, "error"], rows)
+    fus = fusion_statistics([r for r in rows if r["status"] == "ok"])
+    if fus:
+        write_text(inside(out, "fusion.json"), json.dumps({"units": "fractions; medians in mm or deg as named",
+                                                            "rows": fus}, indent=1) + "\n")
     rep = validation_report(inside(out, "report.html"), rows, mcols, list(factor_cols), seed=seed, job=job,
                             batch=batch)
     return ValidationResult(out, csv_path, rep, tuple(rows), tuple(mcols), batch)

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from kinematics.pig import SegmentPose
 from personalize.errors import InputError
-from personalize.fusion import blend_poses, fuse_axis, fuse_gaussian
+from personalize.fusion import blend_poses, fuse_axis, fuse_gaussian, fuse_linear, fusion_monte_carlo
 
 # Hip centre in the pelvis frame (m): an MRI-like estimate (precise, anisotropic) and a motion-like one.
 C_MRI = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.5], [0.0, 0.5, 9.0]]) * 1e-6
@@ -68,6 +68,86 @@ def test_bad_fusion_input():
         fuse_gaussian([(HIP, np.eye(2)), (HIP, C_MOT)])
     with pytest.raises(InputError, match="nothing"):
         fuse_gaussian([])
+
+
+# --------------------------------------------------------------------------- correlated sources (both hips)
+
+def _two_hip_mri_cov():
+    """6x6 covariance of two MRI hips sharing one registration error (m²): shared 2 mm, own 0.5 mm per axis."""
+    shared = np.diag([2.0, 1.0, 1.5]) ** 2 * 1e-6
+    own = 0.5**2 * 1e-6 * np.eye(3)
+    return np.block([[shared + own, shared], [shared, shared + own]])
+
+
+def test_linear_fusion_without_correlation_is_the_product_of_gaussians():
+    x1, x2 = HIP + [0.001, -0.002, 0.0], HIP + [-0.003, 0.001, 0.002]
+    f, g = fuse_linear([(x1, C_MRI), (x2, C_MOT)]), fuse_gaussian([(x1, C_MRI), (x2, C_MOT)])
+    assert np.allclose(f.mean, g.mean, atol=1e-15) and np.allclose(f.cov, g.cov, rtol=1e-10, atol=1e-20)
+    assert np.allclose(f.weights, g.weights) and np.isclose(f.chi2, g.chi2) and f.dof == g.dof == 3
+
+
+def test_joint_hip_fusion_uses_the_shared_registration_error():
+    """Motion on the right hip only also corrects the left MRI hip, through the MRI cross-covariance."""
+    rng = np.random.default_rng(7)
+    C6 = _two_hip_mri_cov()
+    Cm = np.diag([3.0, 3.0, 3.0]) ** 2 * 1e-6
+    truth = np.concatenate([HIP, HIP * [1, -1, 1]])
+    H = np.eye(6)
+    n = 1500
+    e_mri = rng.multivariate_normal(np.zeros(6), C6, n)
+    e_mot = rng.multivariate_normal(np.zeros(3), Cm, n)
+    joint, naive = [], []
+    for a, b in zip(e_mri, e_mot):
+        f = fuse_linear([(truth + a, C6, H), (truth[:3] + b, Cm, H[:3])], ("mri", "motion_r"))
+        joint.append(f.mean - truth)
+        g = fuse_linear([(truth + a, C6 * np.kron(np.eye(2), np.ones((3, 3))), H), (truth[:3] + b, Cm, H[:3])])
+        naive.append(g.mean - truth)
+    joint, naive = np.array(joint), np.array(naive)
+    mse = lambda e: np.mean(np.sum(e**2, axis=1))  # noqa: E731
+    # the left hip (no motion data) improves over its MRI estimate only when the cross-covariance is used
+    assert mse(joint[:, 3:]) < 0.8 * mse(e_mri[:, 3:])
+    assert np.isclose(mse(naive[:, 3:]), mse(e_mri[:, 3:]))
+    assert mse(joint[:, :3]) < mse(e_mri[:, :3]) and mse(joint[:, :3]) < mse(e_mot)
+    # reported covariance = actual spread (Mahalanobis distances ~ chi2 with 6 dof)
+    m2 = np.mean([e @ np.linalg.solve(f.cov, e) for e in joint])
+    assert 5.6 < m2 < 6.4
+    # matrix weights: the MRI block weights sum with the motion's to I; the motion weight on the left hip
+    # is carried by its cross block only
+    assert np.allclose(f.weights.sum(axis=0), np.eye(6))
+    assert np.allclose(f.weights[1][3:, 3:], 0) and np.abs(f.weights[1][3:, :3]).max() > 0.1
+    assert f.dof == 3 and 0 < f.shares[1] < 0.5
+
+
+def test_cross_covariance_equals_stacked_gls():
+    """The 'cross' argument gives the same result as one stacked observation with the full covariance."""
+    C6 = _two_hip_mri_cov()
+    z = np.concatenate([HIP + 0.001, HIP * [1, -1, 1] - 0.002])
+    zm = HIP + [0.004, 0.0, -0.003]
+    Cm = 9e-6 * np.eye(3)
+    H = np.eye(6)
+    a = fuse_linear([(z, C6, H), (zm, Cm, H[:3])])
+    b = fuse_linear([(z[:3], C6[:3, :3], H[:3]), (z[3:], C6[3:, 3:], H[3:]), (zm, Cm, H[:3])], cross={(0, 1): C6[:3, 3:]})
+    assert np.allclose(a.mean, b.mean, atol=1e-14) and np.allclose(a.cov, b.cov, atol=1e-20)
+    assert np.isclose(a.chi2, b.chi2)
+
+
+def test_linear_fusion_bad_input():
+    H = np.eye(6)
+    with pytest.raises(InputError, match="do not determine"):
+        fuse_linear([(HIP, C_MRI, H[:3]), (HIP, C_MOT, H[:3])])          # nothing observes the left hip
+    with pytest.raises(InputError, match="not positive definite"):
+        fuse_linear([(HIP, C_MRI), (HIP, C_MRI)], cross={(0, 1): 2 * C_MRI})
+    with pytest.raises(InputError, match="cross-covariance"):
+        fuse_linear([(HIP, C_MRI), (HIP, C_MOT)], cross={(0, 1): np.eye(2)})
+
+
+def test_monte_carlo_bound_of_gaussian_fusion():
+    # equal isotropic sources: the fused error is N(0, C/2), its median 1/sqrt(2) of a source's
+    r = fusion_monte_carlo(np.eye(3), np.eye(3), n=20000, seed=3)
+    assert r["median_fused"] == pytest.approx(r["median_a"] / np.sqrt(2), rel=0.03)
+    # a source 6x worse: fusion rarely beats both (the better source's error dominates)
+    r = fusion_monte_carlo(np.eye(3), 36 * np.eye(3), n=20000, seed=3)
+    assert 0.45 < r["fraction_below_both"] < 0.7 and r["median_fused"] < r["median_a"]
 
 
 # --------------------------------------------------------------------------- axes

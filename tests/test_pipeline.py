@@ -55,6 +55,46 @@ def test_errors_against_truth(subject):
     assert summary["truth_frame"]["scanner_to_static_lab_rms_m"] < 1e-6
 
 
+def test_hips_fused_jointly_and_angle_errors(subject):
+    _, _, summary = subject
+    hj = summary["estimates"]["hips_joint_fusion"]
+    assert set(hj["weights"]) == {"mri", "motion_r", "motion_l"} and hj["dof"] == 6
+    assert hj["weights"]["mri"] > 0.8                     # the registration is the precise source of both hips
+    C = np.array(hj["cov"])
+    assert C[0, 3] / np.sqrt(C[0, 0] * C[3, 3]) > 0.3     # both hips keep the shared registration error
+    for s in "rl":
+        w = summary["estimates"][f"hip_{s}_centre"]["fused"]["weights"]
+        assert set(w) == {"mri", "motion"} and w["mri"] + w["motion"] == pytest.approx(1.0)
+    a = summary["angle_rmse_deg"]
+    assert {"hip_flexion_r", "knee_flexion_r", "ankle_angle_r", "knee_flexion_l"} <= set(a)
+    # knee flexion follows the truth within a few degrees (soft-tissue artefact, personalised frames)
+    assert 0.0 < a["knee_flexion_r"] < 8.0 and all(0.0 < v < 25.0 for v in a.values())
+    off = summary["angle_offset_deg"]
+    assert set(off) == set(a) and all(abs(off[c]) <= a[c] + 1e-9 for c in a)     # |mean| <= rms
+
+
+def test_fuse_hips_cross_covariance():
+    """fuse_hips: the MRI 6x6 covariance is the registration's J Cov Jᵀ blocks (scaled); weights per side sum to 1."""
+    from personalize.pipeline import fuse_hips
+    from personalize.registration import register_landmarks
+
+    rng = np.random.default_rng(0)
+    P = np.array([[0.12, 0.06, 0.0], [0.12, -0.06, 0.0], [-0.04, 0.05, 0.02], [-0.04, -0.05, 0.02]])
+    reg = register_landmarks(P, P + [1.0, 0.5, 0.9] + rng.normal(0, 1e-3, P.shape), marker_sd=0.003)
+    hips = {"r": (np.array([0.05, -0.08, -0.08]), 1e-8 * np.eye(3)), "l": (np.array([0.05, 0.08, -0.08]), 1e-8 * np.eye(3))}
+    motion = {s: (reg.transfer_point(h[0])[0] + [0.005, 0.0, -0.01], 1e-4 * np.eye(3)) for s, h in hips.items()}
+    mri, fused, joint = fuse_hips(reg, hips, motion, mri_scale=0.5)
+    np.testing.assert_allclose(joint.weights.sum(axis=0), np.eye(6), atol=1e-12)
+    np.testing.assert_allclose(mri["r"][1], 0.5 * reg.transfer_point(*hips["r"])[1] + 1e-8 * np.eye(3), rtol=1e-9)  # + detection floor
+    Y, C6 = reg.transfer_points([hips["r"][0], hips["l"][0]], [hips["r"][1], hips["l"][1]])
+    # the fused hips are closer to the (exact) MRI ones than to the 1 cm-off motion ones, and stay correlated
+    for s in "rl":
+        assert fused[s].shares.sum() == pytest.approx(1.0) and fused[s].shares[0] > 0.5
+        assert np.linalg.norm(fused[s].mean - mri[s][0]) < np.linalg.norm(fused[s].mean - motion[s][0])
+    # the MRI hips enter with their cross-covariance: the fused hips stay correlated
+    assert np.all(np.abs(np.diag(C6[:3, 3:])) > 0) and np.all(np.abs(np.diag(joint.cov[:3, 3:])) > 0)
+
+
 def test_ik_every_trial(subject):
     subj, out, summary = subject
     assert set(summary["ik"]) == {"static", "gait_01", "crouch_000_01", "functional_hip"}
@@ -88,7 +128,10 @@ def test_missing_static_exit_2(subject, tmp_path, capsys):
     assert main(["run", str(bad), "--out", str(tmp_path / "o"), "-q"]) == 2
     err = capsys.readouterr().err
     assert "static.c3d" in err and "missing" in err
-    assert not (tmp_path / "o").exists()
+    # the refusal is reported inside --out, and nothing else is written
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["report.html"]
+    html = (tmp_path / "o" / "report.html").read_text()
+    assert "refused" in html and "static.c3d" in html and "missing" in html
 
 
 def test_missing_trials(subject, tmp_path):
@@ -189,7 +232,8 @@ def test_markers_of_the_mirrored_side(subject, tmp_path, capsys):
     assert main(["run", str(bad), "--out", str(tmp_path / "o"), "-q"]) == 2
     err = capsys.readouterr().err
     assert "mirrored" in err and "static.c3d" in err
-    assert not (tmp_path / "o").exists()
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["report.html"]
+    assert "mirrored" in (tmp_path / "o" / "report.html").read_text()
 
 
 # --------------------------------------------------------------------------- personalize demo

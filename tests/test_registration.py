@@ -46,7 +46,8 @@ def test_transform_and_uncertainty_calibrated():
     N = _random_normals(rng, K)
     off, off_sd, nsd, msd = SKIN_THICKNESS + MARKER_RADIUS, 0.003, np.radians(10.0), 0.003
     hip = np.array([0.0, 0.88, 0.08])  # a point away from the landmarks, like a hip centre
-    errs, covs, hip_m2, dir_err, dir_sd = [], [], [], [], []
+    hips = np.array([[0.0, 0.88, 0.08], [0.0, 0.88, -0.08]])  # both hip centres: one shared registration error
+    errs, covs, hip_m2, dir_err, dir_sd, pair_m2, pair_e, pair_c = [], [], [], [], [], [], [], []
     for _ in range(200):
         Pn = P0 + np.array([rng.multivariate_normal(np.zeros(3), C) for C in Cp])
         true_centres = np.array([p + (off + off_sd * rng.normal()) * _tilt(rng, n, nsd) for p, n in zip(P0, N)])
@@ -58,6 +59,12 @@ def test_transform_and_uncertainty_calibrated():
         y, cy = reg.transfer_point(hip)
         e = y - (R_TRUE @ hip + T_TRUE)
         hip_m2.append(e @ np.linalg.solve(cy, e))
+        Y, C6 = reg.transfer_points(hips)
+        e6 = (Y - (hips @ R_TRUE.T + T_TRUE)).ravel()
+        # rank 5: a rotation about the line through both points moves neither
+        pair_m2.append(e6 @ np.linalg.pinv(C6, rcond=1e-9, hermitian=True) @ e6)
+        pair_e.append(e6)
+        pair_c.append(C6)
         u, sd, _ = reg.transfer_direction([0.0, 0.0, 1.0], sd_deg=0.0)
         dir_err.append(np.degrees(np.arccos(np.clip(u @ R_TRUE[:, 2], -1, 1))))
         dir_sd.append(sd)
@@ -67,6 +74,15 @@ def test_transform_and_uncertainty_calibrated():
     m2 = np.mean([e @ np.linalg.solve(C, e) for e, C in zip(errs, covs)])
     assert 6 * 0.7 < m2 < 6 * 1.3, m2
     assert 3 * 0.7 < np.mean(hip_m2) < 3 * 1.3
+    # both points jointly: 5-dof Mahalanobis distances, and the predicted between-point covariance is the actual one
+    assert np.linalg.matrix_rank(pair_c[0], tol=1e-9 * np.abs(pair_c[0]).max()) == 5
+    assert 5 * 0.7 < np.mean(pair_m2) < 5 * 1.3
+    emp = np.cov(np.array(pair_e).T)
+    pred = np.mean(pair_c, axis=0)
+    assert np.allclose(np.diag(emp[:3, 3:]), np.diag(pred[:3, 3:]), atol=0.3 * np.sqrt(np.diag(pred)[:3] * np.diag(pred)[3:]).max())
+    Y1, C1 = reg.transfer_point(hips[1])
+    np.testing.assert_allclose(C6[3:, 3:], C1, rtol=1e-9, atol=1e-20)
+    np.testing.assert_allclose(Y[1], Y1)
     # Angle error of a direction: rms over draws vs predicted per-plane sd·√2 (2 tangent components).
     rms_angle = np.sqrt(np.mean(np.square(dir_err)))
     assert 0.7 < rms_angle / (np.sqrt(2) * np.sqrt(np.mean(np.square(dir_sd)))) < 1.3

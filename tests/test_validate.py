@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from kinematics.errors import InputError
-from personalize.validate import (DEFAULT_RANGES, SURFACE_JOB, draw_subjects, flatten_metrics, metric_groups, metric_statistics,
-                                  read_metrics, run_validation)
+from personalize.validate import (DEFAULT_RANGES, SURFACE_JOB, draw_subjects, flatten_metrics, fusion_statistics, metric_groups,
+                                  metric_statistics, read_metrics, run_validation)
 
 SMALL = {"inplane_mm": (2.5, 3.0), "slice_mm": (3.0, 3.5)}  # coarse voxels keep the test fast
 
@@ -133,7 +133,8 @@ def test_report_of_pipeline_shaped_metrics(tmp_path):
     p = _Imgs()
     p.feed(path.read_text())
     assert p.imgs == 5        # hip, knee axis, ankle axis box plots; ik_rms_mm histogram; IK per trial
-    assert p.tables == 4      # headline statistics, other quantities, failed subjects, draws
+    assert p.tables == 5      # headline statistics, fusion vs sources, other quantities, failed subjects, draws
+    assert "Fusion against each source" in path.read_text()
     text = path.read_text()
     assert "errors.hip_centre_mm.fused" in text and "registration.femur_r.rms_mm" in text
     assert "estimates.hip_r" not in text
@@ -141,3 +142,22 @@ def test_report_of_pipeline_shaped_metrics(tmp_path):
     hip = [r["errors.hip_centre_mm.mri"] for r in rows[:4]]
     (st,) = metric_statistics(rows[:4], ["errors.hip_centre_mm.mri"])
     assert st["mean"] == pytest.approx(np.mean(hip)) and f"{np.max(hip):.4g}" in text
+
+
+def test_fusion_statistics_per_subject_and_leg():
+    """Fractions of fused-below-both / -MRI / -motion and medians, from the summary's worst side and per-side errors."""
+    legs = {"p0": {"r": (2.0, 10.0, 1.5), "l": (1.0, 8.0, 1.2)},     # right: fused best; left: MRI best
+            "p1": {"r": (3.0, 2.0, 2.5), "l": (2.0, 9.0, 1.9)},      # right: motion best; left: fused best
+            "p2": {"r": (1.0, 12.0, 0.9), "l": (1.5, 11.0, 1.4)}}    # fused best on both
+    rows = []
+    for name, sides in legs.items():
+        per_side = {s: {"hip_centre_mm": dict(zip(("mri", "motion", "fused"), v))} for s, v in sides.items()}
+        worst = {"hip_centre_mm": {src: max(per_side[s]["hip_centre_mm"][src] for s in sides) for src in ("mri", "motion", "fused")}}
+        rows.append({"subject": name, **flatten_metrics({"errors": worst, "errors_per_side": per_side})})
+    st = {r["unit"]: r for r in fusion_statistics(rows)}
+    leg, subj = st["leg"], st["subject (worst side)"]
+    assert leg["n"] == 6 and leg["fused_below_both"] == pytest.approx(4 / 6) and leg["fused_below_mri"] == pytest.approx(5 / 6)
+    assert leg["fused_below_motion"] == pytest.approx(5 / 6)
+    # worst sides: p0 (2, 10, 1.5) fused best; p1 (3, 9, 2.5) fused best; p2 (1.5, 12, 1.4) fused best
+    assert subj["n"] == 3 and subj["fused_below_both"] == 1.0 and subj["median_mri"] == 2.0 and subj["median_fused"] == 1.5
+    assert fusion_statistics([{"subject": "x"}]) == []

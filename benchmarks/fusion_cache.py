@@ -1,0 +1,118 @@
+"""Cache the per-leg MRI-only and motion-only hip estimates of phantom subjects (fusion calibration data).
+
+For each phantom subject drawn like ``personalize validate`` (`personalize.validate.draw_subjects`
+with a TRAINING master seed, disjoint from the validation seeds) this runs the pipeline
+only up to the joint estimates (surfaces, landmarks, pelvis registration, SCoRE/SARA;
+no model, no IK) and stores per subject, in the static-trial lab frame (m, m²):
+
+* the pelvis registration (R, t, 6x6 covariance of (ω, δ), pivot) and the scanner
+  hip centres with their own covariance (so both MRI hips' joint 6x6 covariance can
+  be recomputed);
+* per side: the MRI hip (x, C), the SCoRE hip (x, raw C from its residuals, C with
+  the pipeline's floor), the cluster poses of the functional trial (npz) so other
+  SCoRE covariances can be computed offline, the knee axes (MRI, motion) and the truth;
+* the pelvis anatomical frame of the static markers.
+
+Usage::
+
+    python benchmarks/fusion_cache.py --subjects 24 --seed 1000 --out /tmp/p1_cache
+    python benchmarks/fusion_cache.py --folders VALIDATION_OUT/subjects --out /tmp/p1_valcache   # held-out check
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def cache_subject(d: Path, out_json: Path, say=print) -> dict:
+    from personalize.frames import joints_from_landmarks
+    from personalize.landmarks import detect_landmarks
+    from personalize.pipeline import (_PELVIS, _THIGH, _cluster_pose, estimate_joints, find_inputs,
+                                      truth_in_static_lab)
+    from personalize.surfaces import load_bones
+    from kinematics.functional import score
+
+    t0 = time.perf_counter()
+    inputs = find_inputs(d)
+    surfaces = load_bones(inputs.bones, inputs.label_map, seed=0)
+    t1 = time.perf_counter()
+    ls = detect_landmarks(surfaces)
+    joints, dropped = joints_from_landmarks(ls)
+    lm_json = ls.to_json()
+    j_json = {k: v.to_json() for k, v in joints.items()}
+    t2 = time.perf_counter()
+    est = estimate_joints(inputs, surfaces, lm_json, j_json, lambda m: None, dropped)
+    truth = truth_in_static_lab(inputs)
+    t3 = time.perf_counter()
+    reg = est.registrations["pelvis"]
+    rec = {"subject": d.name, "units": "m, m^2, rad", "frame": "static-trial lab",
+           "pelvis_origin": est.pelvis[0].tolist(), "pelvis_axes": est.pelvis[1].tolist(),
+           "reg": {"R": reg.R.tolist(), "t": reg.t.tolist(), "cov": reg.cov.tolist(), "centre": reg.centre.tolist(),
+                   "names": list(reg.names), "chi2": reg.chi2, "dof": reg.dof, "inflation": reg.inflation},
+           "seconds": {"surfaces": t1 - t0, "landmarks": t2 - t1, "estimates": t3 - t2}, "sides": {}}
+    fun = inputs.trials[inputs.functional]
+    poses = {}
+    for s in est.centres:
+        S = s.upper()
+        h = est.centres[s]["hip"]
+        P = _cluster_pose(inputs.static, [fun], _PELVIS + ("SACR",))
+        D = _cluster_pose(inputs.static, [fun], tuple(S + m for m in _THIGH))
+        sc = score(P.R, P.t, D.R, D.t)
+        poses.update({f"{s}_PR": P.R, f"{s}_Pt": P.t, f"{s}_DR": D.R, f"{s}_Dt": D.t})
+        ka = est.axes[s]["knee"]
+        rec["sides"][s] = {
+            "hip_scanner": j_json[f"hip_{s}"]["origin"], "hip_scanner_cov": j_json[f"hip_{s}"]["origin_cov"],
+            "mri": [h["mri"][0].tolist(), h["mri"][1].tolist()],
+            "motion": [h["motion"][0].tolist(), h["motion"][1].tolist()],
+            "score": [sc.proximal.tolist(), sc.cov_proximal.tolist(), sc.rms, sc.n_frames],
+            "truth": truth["centres"][f"hip_{s}"].tolist(),
+            "knee_axis": {"mri": [np.asarray(ka["mri"][0]).tolist(), float(ka["mri"][1])],
+                          "motion": [np.asarray(ka["motion"][0]).tolist(), float(ka["motion"][1])],
+                          "truth": truth["axes"][f"knee_{s}"].tolist()},
+        }
+    np.savez_compressed(out_json.with_suffix(".npz"), **poses)
+    out_json.write_text(json.dumps(rec, indent=1) + "\n")
+    say(f"{d.name}: surfaces {t1 - t0:.0f} s, landmarks {t2 - t1:.0f} s, estimates {t3 - t2:.0f} s")
+    return rec
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--subjects", type=int, default=12)
+    ap.add_argument("--seed", type=int, default=1000, help="TRAINING master seed (not a validation seed)")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/p1_cache"))
+    ap.add_argument("--first", type=int, default=0)
+    ap.add_argument("--folders", type=Path, default=None,
+                    help="cache existing phantom subject folders (e.g. a validation run's subjects/) instead of drawing")
+    a = ap.parse_args(argv)
+    from personalize.validate import SPEC, draw_subjects, ensure_phantom_subject
+
+    a.out.mkdir(parents=True, exist_ok=True)
+    if a.folders is not None:
+        for d in sorted(p for p in a.folders.iterdir() if (p / "generated.json").is_file()):
+            oj = a.out / f"{d.name}.json"
+            if not oj.is_file():
+                cache_subject(d, oj)
+        return
+    for spec in draw_subjects(a.first + a.subjects, a.seed)[a.first:]:
+        d = a.out / "subjects" / spec.subject
+        oj = a.out / f"{spec.subject}.json"
+        if oj.is_file():
+            continue
+        d.mkdir(parents=True, exist_ok=True)
+        (d / SPEC).write_text(json.dumps(spec.to_json(), indent=1) + "\n")
+        t0 = time.perf_counter()
+        ensure_phantom_subject(d, spec)
+        print(f"{spec.subject}: phantom {time.perf_counter() - t0:.0f} s", flush=True)
+        cache_subject(d, oj)
+
+
+if __name__ == "__main__":
+    main()
