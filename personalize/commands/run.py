@@ -5,8 +5,8 @@ SUBJECT_DIR holds ``labels.nii.gz`` (+ ``label_map.json``) or ``bones/``,
 the hip centres) and ``subject.json``; the folder `personalize phantom`
 writes is itself a valid SUBJECT_DIR.  Writes model.osim, model.json,
 meshes/, landmarks.json, joints.json, kinematics/<trial>.mot (+ marker
-errors), report.html and summary.json; nothing when the subject is refused
-(exit code 2 with a one-line message).
+errors), report.html and summary.json; when the subject is refused, only
+report.html stating the error (exit code 2 with a one-line message).
 """
 from __future__ import annotations
 
