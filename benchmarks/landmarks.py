@@ -11,6 +11,8 @@
    ``automatic_ICL_MRI.osim``.  For the subtalar joint, whose origin along
    the axis is a convention, the distance from the reference centre to the
    detected axis line is printed as well.
+   The talar trochlea's radius profile about each convention's axis and the
+   sensitivity of our ankle to the dome seed's parameters (+-20 %) follow.
 3. TLEM2-MRI, both sides (no reference model): joint centres, left/right
    consistency (segment lengths, knee-ankle axis angle) and flags.
 4. ``--phantom``: errors over 10 phantom seeds at 1 mm isotropic and at
@@ -93,6 +95,107 @@ def reference_comparison() -> dict:
     return {"ours": ours, "staple": st, "flags": {k: v.flags for k, v in ls.bones.items() if v.flags}}
 
 
+def ankle_diagnostics() -> dict:
+    """Talar dome: radius profile along the trochlear arc (ICL-MRI) and sensitivity (ICL, TLEM2).
+
+    The trochlea is not a circular cylinder: seen from a fixed axis its radius
+    changes along the antero-posterior arc, so a cylinder's axis and centre
+    depend on which arc is fitted.  Printed: (a) the median distance of the
+    trochlea (central 16 mm, normals within 25 deg of radial) from each
+    convention's axis per 10-deg sector about it (0 = superior in the tibia
+    frame, + = anterior); (b) the change of our ankle centre and axis when the
+    dome seed's selection parameters change by +-20 %, against the hand-built
+    model on ICL-MRI and against the nominal setting on TLEM2-MRI (both sides).
+    """
+    from personalize.frames import joints_from_landmarks
+    from personalize.landmarks import detect_landmarks
+    from personalize.landmarks import talus as T
+    from personalize.landmarks.common import as_surface, orient, perpendicular, unit
+    from personalize.reference_models import compare_joints, read_reference_joints
+    from personalize.surfaces import load_bones
+
+    ref = DATA / "reference_models"
+    manual = read_reference_joints(ref / "manual_ICL_MRI.osim", use_opensim=False)
+    staple = read_reference_joints(ref / "automatic_ICL_MRI.osim", use_opensim=False)
+    surfaces = load_bones(DATA / "bones" / "ICL_MRI")
+    ls = detect_landmarks(surfaces)
+    tal = ls.bones["talus_r"]
+    S = as_surface(surfaces["talus_r"], "talus_r")
+    up = ls.bones["tibia_r"].frames["anatomical"]["rotation"][:, 1]
+    ant = tal.frames["anatomical"]["rotation"][:, 0]
+    f = tal.fits["talar_dome"]
+    u0 = np.asarray(f["axis"])
+    out = {"profile_mm": {}, "sensitivity": {}}
+    print("\nICL-MRI talar trochlea: distance from each axis (mm) per 10-deg sector "
+          "(0 = tibial superior, + = anterior)")
+    for name, o, z in (("ours", np.asarray(f["point"]), u0), ("manual", manual["ankle_r"].origin,
+                                                            manual["ankle_r"].rotation[:, 2]),
+                       ("STAPLE", staple["ankle_r"].origin, staple["ankle_r"].rotation[:, 2])):
+        z = orient(unit(z), u0)
+        e_up = unit(perpendicular(up, z))
+        e_ant = orient(np.cross(e_up, z), ant)
+        v = S.vertices - o
+        t = v @ z
+        rad = v - np.outer(t, z)
+        dist = np.linalg.norm(rad, axis=1)
+        ok = (np.einsum("ij,ij->i", rad, S.normals) / dist > 0.9) & (dist < 0.035) & (np.abs(t) < 0.008)
+        th = np.degrees(np.arctan2(rad @ e_ant, rad @ e_up))
+        prof = {}
+        for a in range(-80, 81, 10):
+            m = ok & (np.abs(th - a) < 5)
+            prof[a] = float(np.median(dist[m]) * 1e3) if m.sum() > 3 else float("nan")
+        out["profile_mm"][name] = prof
+        print(f"  {name:7s} " + " ".join(f"{a:+d}:{r:.1f}" for a, r in prof.items()))
+    print("sensitivity of our ankle (vs manual) to the dome seed's parameters (x0.8, x1, x1.2):")
+    for pname in ("DOME_CONTACT_GAP", "DOME_MIN_UP_COS"):
+        base = getattr(T, pname)
+        rows = []
+        try:
+            for m in (0.8, 1.0, 1.2):
+                setattr(T, pname, base * m)
+                lsm = detect_landmarks(surfaces)
+                J, _ = joints_from_landmarks(lsm)
+                c = compare_joints(J, manual, ["ankle_r"])["ankle_r"]
+                rows.append({"value": base * m, "distance_mm": c["distance_mm"], "angle_deg": c["angle_deg"],
+                             "radius_mm": lsm.bones["talus_r"].scalars["talar_dome_radius"] * 1e3})
+        finally:
+            setattr(T, pname, base)
+        out["sensitivity"][pname] = rows
+        print(f"  {pname:17s} " + "; ".join(f"{r['value']:.4g}: {r['distance_mm']:.2f} mm {r['angle_deg']:.2f} deg "
+                                            f"r {r['radius_mm']:.2f}" for r in rows))
+    folder = DATA / "bones" / "TLEM2_MRI"
+    if folder.is_dir():
+        # no reference model: change of the ankle centre and axis from the nominal setting
+        tl = load_bones(folder)
+        base = T.DOME_CONTACT_GAP
+        nominal, rows = None, []
+        try:
+            for m in (1.0, 0.8, 1.2):
+                T.DOME_CONTACT_GAP = base * m
+                lsm = detect_landmarks(tl)
+                J, _ = joints_from_landmarks(lsm)
+                nominal = nominal or J
+                row = {"value": base * m}
+                for s in ("r", "l"):
+                    a, n0 = J.get(f"ankle_{s}"), nominal.get(f"ankle_{s}")
+                    if a is None or n0 is None:
+                        continue
+                    cz = abs(float(a.rotation[:, 2] @ n0.rotation[:, 2]))
+                    row[s] = {"shift_mm": float(np.linalg.norm(a.origin - n0.origin) * 1e3),
+                              "axis_change_deg": float(np.degrees(np.arccos(min(1.0, cz)))),
+                              "radius_mm": lsm.bones[f"talus_{s}"].scalars.get("talar_dome_radius", np.nan) * 1e3}
+                rows.append(row)
+        finally:
+            T.DOME_CONTACT_GAP = base
+        out["sensitivity_tlem2"] = rows
+        print("TLEM2-MRI: change of the ankle from the nominal DOME_CONTACT_GAP (shift mm / axis deg / radius mm):")
+        for row in rows:
+            print(f"  {row['value']:.4g}: " + " | ".join(
+                f"{s} {row[s]['shift_mm']:.2f} / {row[s]['axis_change_deg']:.2f} / {row[s]['radius_mm']:.1f}"
+                for s in ("r", "l") if s in row))
+    return out
+
+
 def tlem2() -> dict:
     from personalize.frames import joints_from_landmarks
     from personalize.landmarks import detect_landmarks
@@ -155,6 +258,7 @@ def main() -> None:
     if (DATA / "bones" / "ICL_MRI").is_dir():
         out["timing"] = timing(args.repeat)
         out["icl_vs_manual"] = reference_comparison()
+        out["icl_ankle"] = ankle_diagnostics()
         out["tlem2"] = tlem2()
     else:
         print(f"shared data not found at {DATA}: real-bone parts skipped")

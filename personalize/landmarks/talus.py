@@ -39,6 +39,11 @@ FACET_INLIER = 0.0008
 #: largest plausible posterior-facet radius, m (adults 14-25 mm); a flattened, noisy
 #: facet drives the refit towards a plane, which must be rejected, not used
 FACET_MAX_RADIUS = 0.04
+#: talar dome seed: talus points whose normal meets the tibia within this gap, m
+DOME_CONTACT_GAP = 0.006
+#: ... and whose normal is within acos(DOME_MIN_UP_COS) of superior (the trochlea,
+#: not the malleolar facets)
+DOME_MIN_UP_COS = 0.3
 
 
 def _near(surface: Surface, other: Surface | None, gap: float) -> np.ndarray | None:
@@ -77,14 +82,14 @@ def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | No
 
     # ---- dome ----------------------------------------------------------------------
     dome_mask = None
-    near_tib = _near(surface, tibia, 0.006)
+    near_tib = _near(surface, tibia, DOME_CONTACT_GAP)
     if up_hint is None and calcaneus is not None:
         # the talus sits on the calcaneus: superior = away from the calcaneal contact
         nc = _near(surface, calcaneus, 0.006)
         if nc is not None and nc.sum() >= 20:
             up_hint = unit(-(A[nc] @ Nrm[nc]))
     if near_tib is not None and up_hint is not None:
-        near_tib &= Nrm @ up_hint > 0.3          # the trochlea, not the malleolar facets
+        near_tib &= Nrm @ up_hint > DOME_MIN_UP_COS
     if near_tib is not None and near_tib.sum() >= 30:
         patches = largest_patch(surface, near_tib, 1)
         dome_mask = patches[0] if patches else None
