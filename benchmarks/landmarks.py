@@ -12,7 +12,10 @@
    the axis is a convention, the distance from the reference centre to the
    detected axis line is printed as well.
    The talar trochlea's radius profile about each convention's axis and the
-   sensitivity of our ankle to the dome seed's parameters (+-20 %) follow.
+   sensitivity of our ankle to the dome seed's parameters (+-20 %) follow,
+   then STAPLE's talus-intrinsic trochlea convention (reproduced in
+   `personalize.landmarks.trochlea`) and its variants, with their +-20 %
+   sensitivity, on ICL-MRI and TLEM2-MRI.
 3. TLEM2-MRI, both sides (no reference model): joint centres, left/right
    consistency (segment lengths, knee-ankle axis angle) and flags.
 4. ``--phantom``: errors over 10 phantom seeds at 1 mm isotropic and at
@@ -196,6 +199,89 @@ def ankle_diagnostics() -> dict:
     return out
 
 
+STAPLE_VARIANTS = (("STAPLE-faithful", {}),
+                   ("centre mid-extent", {"centre": "mid"}),
+                   ("mid, band refit to convergence", {"centre": "mid", "refit_iterations": 20}),
+                   ("mid, no back-of-bone cut", {"centre": "mid", "posterior_cut": False}))
+#: STAPLE's trochlea selection settings and their nominal values (varied by +-20 %)
+STAPLE_SETTINGS = {"curvature_quantile": 0.5, "superior_deg": 60.0, "side_deg": 60.0, "band_inside": 0.05,
+                   "band_outside": 0.10, "posterior_widths": 1.0, "morphology": 1.0}
+
+
+def staple_convention() -> dict:
+    """The talus-intrinsic trochlea cylinder in STAPLE's convention (`personalize.landmarks.trochlea`).
+
+    ICL-MRI: centre distance / axis angle from the hand-built model and from
+    STAPLE's own model for each variant, and the largest change of centre and
+    axis when one selection setting changes by +-20 %.  TLEM2-MRI: radius per
+    side, distance and angle from our default (contact) dome, angle between
+    the ankle and knee axes per side.
+    """
+    from personalize.frames import joints_from_landmarks
+    from personalize.landmarks import detect_landmarks
+    from personalize.landmarks.common import as_surface
+    from personalize.landmarks.trochlea import staple_trochlea_cylinder
+    from personalize.reference_models import read_reference_joints
+    from personalize.surfaces import load_bones
+
+    def vs(tc, j):
+        z = j.rotation[:, 2]
+        return (float(np.linalg.norm(tc.point - j.origin) * 1e3),
+                float(np.degrees(np.arccos(min(1.0, abs(float(tc.axis @ z)))))))
+
+    ref = DATA / "reference_models"
+    manual = read_reference_joints(ref / "manual_ICL_MRI.osim", use_opensim=False)["ankle_r"]
+    staple = read_reference_joints(ref / "automatic_ICL_MRI.osim", use_opensim=False)["ankle_r"]
+    surfaces = load_bones(DATA / "bones" / "ICL_MRI")
+    up = detect_landmarks(surfaces).bones["tibia_r"].frames["anatomical"]["rotation"][:, 1]
+    S = as_surface(surfaces["talus_r"], "talus_r")
+    out = {"icl": {}, "tlem2": {}}
+    print("\nICL-MRI ankle, STAPLE's talus-intrinsic trochlea convention (vs hand-built | vs STAPLE model; "
+          "worst change for +-20 % on each selection setting)")
+    for name, opts in STAPLE_VARIANTS:
+        tc = staple_trochlea_cylinder(S, up_hint=up, **opts)
+        dm, am = vs(tc, manual)
+        ds, as_ = vs(tc, staple)
+        worst = {}
+        for k, v in STAPLE_SETTINGS.items():
+            for m in (0.8, 1.2):
+                try:
+                    t2 = staple_trochlea_cylinder(S, up_hint=up, **opts, **{k: v * m})
+                    sh = (float(np.linalg.norm(t2.point - tc.point) * 1e3),
+                          float(np.degrees(np.arccos(min(1.0, abs(float(t2.axis @ tc.axis)))))))
+                except Exception:                                   # noqa: BLE001 - reported as a failure
+                    sh = (float("inf"), float("inf"))
+                w = worst.get(k, (0.0, 0.0))
+                worst[k] = (max(w[0], sh[0]), max(w[1], sh[1]))
+        wk = max(worst, key=lambda k: worst[k][0] + worst[k][1])
+        out["icl"][name] = {"options": opts, "manual_mm": dm, "manual_deg": am, "staple_mm": ds, "staple_deg": as_,
+                            "radius_mm": tc.radius * 1e3, "sensitivity": worst}
+        print(f"  {name:32s} {dm:5.2f} mm {am:5.2f} deg | {ds:5.2f} mm {as_:5.2f} deg | r {tc.radius * 1e3:5.2f} mm"
+              f" | +-20 %: max {max(w[0] for w in worst.values()):.2f} mm, {max(w[1] for w in worst.values()):.2f} deg"
+              f" (worst: {wk})")
+    folder = DATA / "bones" / "TLEM2_MRI"
+    if folder.is_dir():
+        tl = load_bones(folder)
+        ls = detect_landmarks(tl)
+        J, _ = joints_from_landmarks(ls)
+        print("TLEM2-MRI, same variants: radius mm / distance mm and angle deg from our default dome / "
+              "ankle-knee axis angle deg")
+        for name, opts in STAPLE_VARIANTS:
+            row = {}
+            for s in ("r", "l"):
+                up_s = ls.bones[f"tibia_{s}"].frames["anatomical"]["rotation"][:, 1]
+                tc = staple_trochlea_cylinder(as_surface(tl[f"talus_{s}"], f"talus_{s}"), up_hint=up_s, **opts)
+                d, a = vs(tc, J[f"ankle_{s}"])
+                ka = float(np.degrees(np.arccos(min(1.0, abs(float(tc.axis @ J[f"knee_{s}"].rotation[:, 2]))))))
+                row[s] = {"radius_mm": tc.radius * 1e3, "from_default_mm": d, "from_default_deg": a,
+                          "knee_ankle_deg": ka}
+            out["tlem2"][name] = row
+            print(f"  {name:32s} " + " | ".join(
+                f"{s} {row[s]['radius_mm']:.1f} / {row[s]['from_default_mm']:.1f} {row[s]['from_default_deg']:.1f}"
+                f" / {row[s]['knee_ankle_deg']:.1f}" for s in ("r", "l")))
+    return out
+
+
 def tlem2() -> dict:
     from personalize.frames import joints_from_landmarks
     from personalize.landmarks import detect_landmarks
@@ -259,6 +345,7 @@ def main() -> None:
         out["timing"] = timing(args.repeat)
         out["icl_vs_manual"] = reference_comparison()
         out["icl_ankle"] = ankle_diagnostics()
+        out["ankle_staple_convention"] = staple_convention()
         out["tlem2"] = tlem2()
     else:
         print(f"shared data not found at {DATA}: real-bone parts skipped")

@@ -44,6 +44,18 @@ DOME_CONTACT_GAP = 0.006
 #: ... and whose normal is within acos(DOME_MIN_UP_COS) of superior (the trochlea,
 #: not the malleolar facets)
 DOME_MIN_UP_COS = 0.3
+#: talar dome convention: "contact" (default: the talus facing the tibia, refined
+#: on its own cylinder) or "staple" (talus-intrinsic trochlea selection as in STAPLE,
+#: `personalize.landmarks.trochlea`, with DOME_STAPLE_OPTIONS).  The STAPLE
+#: convention was measured (benchmarks/landmarks.py) and not adopted: on ICL-MRI its
+#: axis is 0.74 deg from the hand-built model (STAPLE's own 0.42), +-20 % on its
+#: settings moves it up to 0.9 mm / 0.9 deg, on TLEM2-MRI its radii are 14.5 /
+#: 16.8 mm (right / left), and on the 0.5 x 0.5 x 2 mm phantoms its ankle errs by up
+#: to 7 mm / 16 deg (1 mm phantoms: 0.3 mm / 0.6 deg).  STAPLE's superior direction
+#: (an outline quadrilateral) fails on the phantom tali, so the tibia's superior axis
+#: picks the quadrilateral's superior edge when known.
+DOME_METHOD = "contact"
+DOME_STAPLE_OPTIONS: dict = {}
 
 
 def _near(surface: Surface, other: Surface | None, gap: float) -> np.ndarray | None:
@@ -96,7 +108,17 @@ def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | No
     if up_hint is None and dome_mask is not None:
         up_hint = unit((A[dome_mask] @ Nrm[dome_mask]))
     fit = None
-    if dome_mask is not None:
+    if DOME_METHOD == "staple":
+        from .trochlea import staple_trochlea_cylinder
+        try:
+            tc = staple_trochlea_cylinder(surface, up_hint=up_hint, **DOME_STAPLE_OPTIONS)
+            fit, p, u = tc, tc.point.copy(), tc.axis.copy()
+            sel = np.zeros(len(V), bool)
+            sel[surface.faces[tc.faces].ravel()] = True
+            dome_mask = None
+        except FitError as exc:
+            res.flag(FLAG_LOW_CONFIDENCE, f"talar trochlea (STAPLE convention): {exc}")
+    if dome_mask is not None and fit is None:
         try:
             from personalize.fitting import fit_cylinder
             hint = right_hint if right_hint is not None else ax[:, 1]
