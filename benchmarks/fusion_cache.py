@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def cache_subject(d: Path, out_json: Path, say=print) -> dict:
     from personalize.frames import joints_from_landmarks
     from personalize.landmarks import detect_landmarks
+    from personalize import pipeline as pl
     from personalize.pipeline import (_PELVIS, _THIGH, _cluster_pose, estimate_joints, find_inputs,
                                       truth_in_static_lab)
     from personalize.surfaces import load_bones
@@ -56,7 +57,11 @@ def cache_subject(d: Path, out_json: Path, say=print) -> dict:
            "pelvis_origin": est.pelvis[0].tolist(), "pelvis_axes": est.pelvis[1].tolist(),
            "reg": {"R": reg.R.tolist(), "t": reg.t.tolist(), "cov": reg.cov.tolist(), "centre": reg.centre.tolist(),
                    "names": list(reg.names), "chi2": reg.chi2, "dof": reg.dof, "inflation": reg.inflation},
-           "seconds": {"surfaces": t1 - t0, "landmarks": t2 - t1, "estimates": t3 - t2}, "sides": {}}
+           "seconds": {"surfaces": t1 - t0, "landmarks": t2 - t1, "estimates": t3 - t2}, "sides": {},
+           # the pipeline constants in force: the cached covariances / sds hold them
+           "constants": {k: float(getattr(pl, k, 1.0)) for k in ("MRI_HIP_COV_SCALE", "MRI_KNEE_AXIS_SD_SCALE",
+                                                                  "MOTION_KNEE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE",
+                                                                  "MOTION_ANKLE_AXIS_SD_DEG")}}
     fun = inputs.trials[inputs.functional]
     poses = {}
     for s in est.centres:
@@ -67,6 +72,7 @@ def cache_subject(d: Path, out_json: Path, say=print) -> dict:
         sc = score(P.R, P.t, D.R, D.t)
         poses.update({f"{s}_PR": P.R, f"{s}_Pt": P.t, f"{s}_DR": D.R, f"{s}_Dt": D.t})
         ka = est.axes[s]["knee"]
+        aa = est.axes[s]["ankle"]
         rec["sides"][s] = {
             "hip_scanner": j_json[f"hip_{s}"]["origin"], "hip_scanner_cov": j_json[f"hip_{s}"]["origin_cov"],
             "mri": [h["mri"][0].tolist(), h["mri"][1].tolist()],
@@ -76,6 +82,9 @@ def cache_subject(d: Path, out_json: Path, say=print) -> dict:
             "knee_axis": {"mri": [np.asarray(ka["mri"][0]).tolist(), float(ka["mri"][1])],
                           "motion": [np.asarray(ka["motion"][0]).tolist(), float(ka["motion"][1])],
                           "truth": truth["axes"][f"knee_{s}"].tolist()},
+            "ankle_axis": {"mri": [np.asarray(aa["mri"][0]).tolist(), float(aa["mri"][1])],
+                           "motion": [np.asarray(aa["motion"][0]).tolist(), float(aa["motion"][1])],
+                           "truth": truth["axes"][f"ankle_{s}"].tolist()},
         }
     np.savez_compressed(out_json.with_suffix(".npz"), **poses)
     out_json.write_text(json.dumps(rec, indent=1) + "\n")

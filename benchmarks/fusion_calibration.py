@@ -87,11 +87,18 @@ def calibrate(train: list[dict]) -> dict:
     for sub in train:
         A = sub["A"]
         for s, v in sub["sides"].items():
+            i = "rl".index(s)   # C6 blocks are in (r, l) order
             e = v["x_mri"] - v["truth"]
-            d2.append(e @ np.linalg.solve(v["C_mri"], e))
+            # the UNSCALED registration covariance (the cached pipeline C_mri already holds the scale in force
+            # when the cache was written), so the result is the absolute MRI_HIP_COV_SCALE
+            b = slice(3 * i, 3 * i + 3)
+            d2.append(e @ np.linalg.solve(sub["C6_mri"][b, b] + 1e-8 * np.eye(3), e))
             em = mirror(s) @ A.T @ (v["x_mot"] - v["truth"])
             M.append(np.outer(em, em))
-    return {"mri_cov_scale": float(np.mean(d2) / 3.0), "motion_sta_cov": np.mean(M, axis=0), "legs": len(d2)}
+    d2 = np.array(d2)
+    return {"mri_cov_scale": float(np.mean(d2) / 3.0), "motion_sta_cov": np.mean(M, axis=0), "legs": len(d2),
+            # robust check (heavy-tailed errors, e.g. log-normal soft tissue): median d² / χ²₃ median (2.366)
+            "mri_cov_scale_by_median": float(np.median(d2) / 2.366)}
 
 
 def covariances(sub: dict, cal: dict | None):
@@ -167,17 +174,43 @@ def error_moments(subs):
             "mri_second_moment": (em.T @ em / len(em)).tolist(), "motion_second_moment": (eo.T @ eo / len(eo)).tolist()}
 
 
-def knee_axis_legs(cache: Path, subjects=None) -> list[tuple]:
-    """(u_mri, sd_mri deg, u_motion, sd_motion deg, truth) per leg (lab frame) of the cached subjects."""
+def knee_axis_legs(cache: Path, subjects=None, key: str = "knee_axis") -> list[tuple]:
+    """(u_mri, sd_mri deg, u_motion, sd_motion deg, truth) per leg (lab frame) of the cached subjects (`key`: knee_axis, ankle_axis).
+
+    The sds are freed of the constants the cache was written with (`cache_constants`): sd_mri is the
+    UNSCALED registration sd, sd_motion only the estimator's own part (SARA's; none for the ankle), the
+    artefact floor hypot-ed into it removed.
+    """
+    c = cache_constants(cache)
+    scale, floor = ((c["MRI_KNEE_AXIS_SD_SCALE"], c["MOTION_KNEE_AXIS_SD_DEG"]) if key == "knee_axis"
+                    else (c["MRI_ANKLE_AXIS_SD_SCALE"], np.inf))
     out = []
     for f in sorted(glob.glob(str(cache / "phantom_*.json"))):
         r = json.loads(Path(f).read_text())
         if subjects is not None and r["subject"] not in subjects:
             continue
         for v in r["sides"].values():
-            k = v["knee_axis"]
+            if key not in v:
+                continue
+            k = v[key]
             t = np.array(k["truth"]) / np.linalg.norm(k["truth"])
-            out.append((np.array(k["mri"][0]), float(k["mri"][1]), np.array(k["motion"][0]), float(k["motion"][1]), t))
+            smo = float(np.sqrt(max(float(k["motion"][1]) ** 2 - floor**2, 0.0)))
+            out.append((np.array(k["mri"][0]), float(k["mri"][1]) / scale, np.array(k["motion"][0]), smo, t))
+    return out
+
+
+def cache_constants(cache: Path) -> dict:
+    """Pipeline constants the cache was written with (its first record's ``constants``, else the current ones)."""
+    from personalize import pipeline as pl
+
+    keys = ("MRI_HIP_COV_SCALE", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE",
+            "MOTION_ANKLE_AXIS_SD_DEG")
+    out = {k: float(getattr(pl, k, 1.0)) for k in keys}
+    files = sorted(glob.glob(str(cache / "phantom_*.json")))
+    if files:
+        rec = json.loads(Path(files[0]).read_text()).get("constants")
+        if rec is not None:   # a record's constants; a scale it does not name was not applied then (1)
+            out = {k: float(rec.get(k, 1.0)) for k in keys}
     return out
 
 
@@ -185,11 +218,12 @@ def _angle(u, t):
     return float(np.degrees(np.arccos(min(1.0, abs(u @ t) / np.linalg.norm(u)))))
 
 
-def knee_axes(train: list[tuple], test: list[tuple], floor_deg: float = 6.0) -> dict:
-    """Knee-axis calibration: MRI sd scale k (mean angle² / (2 (k sd)²) = 1) and the SARA artefact sd σ (2σ² = mean angle²).
+def knee_axes(train: list[tuple], test: list[tuple], claimed_scale: float, claimed_floor_deg: float) -> dict:
+    """Knee- (or ankle-) axis calibration: MRI sd scale k (mean angle² / (2 (k sd)²) = 1) and the artefact sd σ (2σ² = mean angle²).
 
-    The cached motion sd holds the pipeline's floor `floor_deg` (hypot with SARA's own sd), removed before
-    the artefact sd is put in its place.  Returns the constants and, per set, claimed vs calibrated errors.
+    Legs from `knee_axis_legs` (unscaled MRI sd, motion sd without floor).  "claimed": the pipeline's
+    constants in force (`claimed_scale`, `claimed_floor_deg`); "calibrated": (k, σ).  Returns the constants
+    and, per set, both.
     """
     from personalize.fusion import fuse_axis
 
@@ -201,11 +235,11 @@ def knee_axes(train: list[tuple], test: list[tuple], floor_deg: float = 6.0) -> 
     for name, legs in (("train", train), ("test", test)):
         if not legs:
             continue
-        for label, km, so in (("claimed", 1.0, None), ("calibrated", k, sta)):
+        for label, km, so in (("claimed", claimed_scale, claimed_floor_deg), ("calibrated", k, sta)):
             ef, em, eo, d2m, d2o = [], [], [], [], []
             for m, sm, o, smo, t in legs:
                 sdm = km * sm
-                sdo = smo if so is None else float(np.hypot(np.sqrt(max(smo**2 - floor_deg**2, 0.0)), so))
+                sdo = float(np.hypot(smo, so))
                 f = fuse_axis([m, o], [sdm, sdo])
                 ef.append(_angle(f.direction, t))
                 em.append(_angle(m, t))
@@ -238,7 +272,7 @@ def main(argv=None) -> dict:
     cal = calibrate(train)
     res = {"units": "mm, mm^2", "cache": str(a.cache), "test_cache": str(a.test_cache or a.cache), "train_subjects": [s["subject"] for s in train],
            "test_subjects": [s["subject"] for s in test],
-           "calibration": {"mri_cov_scale": cal["mri_cov_scale"],
+           "calibration": {"mri_cov_scale": cal["mri_cov_scale"], "mri_cov_scale_by_median": cal["mri_cov_scale_by_median"],
                            "motion_sta_sd_mm": (1e3 * np.sqrt(np.diag(cal["motion_sta_cov"]))).tolist(),
                            "motion_sta_cov_mm2": (1e6 * cal["motion_sta_cov"]).tolist(), "legs": cal["legs"]},
            "errors_train": error_moments(train), "errors_test": error_moments(test) if test else None}
@@ -279,7 +313,21 @@ def main(argv=None) -> dict:
     names = [s["subject"] for s in train]
     test_knee = (knee_axis_legs(a.test_cache) if a.test_cache is not None
                  else knee_axis_legs(a.cache, [s["subject"] for s in test]))
-    res["knee_axis"] = knee_axes(knee_axis_legs(a.cache, names), test_knee)
+    from personalize import pipeline as pl
+
+    res["cache_constants"] = cache_constants(a.cache)
+    res["pipeline_constants_claimed"] = {k: float(getattr(pl, k)) for k in (
+        "MRI_HIP_COV_SCALE", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE",
+        "MOTION_ANKLE_AXIS_SD_DEG")}
+    pc = res["pipeline_constants_claimed"]
+    res["knee_axis"] = knee_axes(knee_axis_legs(a.cache, names), test_knee, pc["MRI_KNEE_AXIS_SD_SCALE"],
+                                 pc["MOTION_KNEE_AXIS_SD_DEG"])
+    # ankle: the same model; the motion (transmalleolar) axis has no estimator sd of its own, the constant is all
+    test_ankle = (knee_axis_legs(a.test_cache, key="ankle_axis") if a.test_cache is not None
+                  else knee_axis_legs(a.cache, [s["subject"] for s in test], key="ankle_axis"))
+    train_ankle = knee_axis_legs(a.cache, names, key="ankle_axis")
+    if train_ankle:
+        res["ankle_axis"] = knee_axes(train_ankle, test_ankle, pc["MRI_ANKLE_AXIS_SD_SCALE"], pc["MOTION_ANKLE_AXIS_SD_DEG"])
     print(json.dumps(res, indent=1, default=float))
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)

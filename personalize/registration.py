@@ -3,8 +3,10 @@
 Model
 -----
 Each landmark p_k (scanner frame, m) with a marker counterpart is moved out of
-the bone along its outward surface normal n_k by the skin thickness plus the
-marker radius, q_k = p_k + d_k n_k, and maps to the measured marker centre
+the bone along its outward surface normal n_k by the soft-tissue thickness plus
+the marker radius, q_k = p_k + d_k n_k (the thickness is measured along the
+bone normal; its prior mean and sd per site come from `kinematics.soft_tissue`,
+see `skin_prior`), and maps to the measured marker centre
 
     m_k = c + exp([ω]×) (R̂ q_k + t̂ - c) + δ + ε_k,   ε_k ~ N(0, Σ_k),
     Σ_k = R C_k Rᵀ + M_k,
@@ -40,17 +42,20 @@ import numpy as np
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
+from kinematics.soft_tissue import DEFAULT_TISSUE, tissue_prior
+
 from .bones import mirror_name
 from .errors import InputError
 
 __all__ = [
     "Registration", "SegmentRegistrations", "register_landmarks", "register_segments", "static_marker_positions", "express_in_frame",
-    "SEGMENT_MARKERS", "SEGMENT_BONES", "SKIN_THICKNESS", "MARKER_RADIUS",
+    "SEGMENT_MARKERS", "SEGMENT_BONES", "SKIN_THICKNESS", "MARKER_RADIUS", "skin_prior",
 ]
 
-#: default soft-tissue thickness over bony landmarks (m) and its sd; override per marker
-SKIN_THICKNESS = 0.005
-SKIN_THICKNESS_SD = 0.003
+#: soft-tissue thickness (m) and sd of a site absent from the per-site table `kinematics.soft_tissue`
+#: (an assumption, not a measured value); `skin_prior` gives each marker's (mean, sd) prior
+SKIN_THICKNESS = DEFAULT_TISSUE.mean
+SKIN_THICKNESS_SD = DEFAULT_TISSUE.sd
 #: radius of a 14 mm reflective marker (m)
 MARKER_RADIUS = 0.007
 #: default sd (m) of marker placement (palpation) on top of the static-trial scatter
@@ -502,6 +507,17 @@ def static_marker_positions(trial, names=None, placement_sd: float = MARKER_PLAC
     return out
 
 
+def skin_prior(marker: str) -> tuple[float, float]:
+    """Prior (mean, sd), m, of the soft tissue between `marker`'s bony landmark and the skin, along the bone normal.
+
+    From the per-site table `kinematics.soft_tissue.SOFT_TISSUE_THICKNESS` (ASIS 9.7 ± 7.0 mm,
+    PSIS 19.6 ± 10.9 mm from pelvic CT, Mantovani et al. 2016; other sites assumed), else
+    (`SKIN_THICKNESS`, `SKIN_THICKNESS_SD`).
+    """
+    p = tissue_prior(marker)
+    return float(p.mean), float(p.sd)
+
+
 def _segment_marker_names(seg: str, side: str | None) -> tuple[str, ...]:
     if seg == "pelvis":
         return SEGMENT_MARKERS["pelvis"]
@@ -594,10 +610,17 @@ class SegmentRegistrations(dict):
         self.skipped = dict(skipped or {})
 
 
+def _per_marker(value, name: str, k: int) -> float:
+    """`value` for marker `name`: a number, a {name: number} dict, or None; else the site prior's mean (k=0) / sd (k=1)."""
+    if isinstance(value, dict):
+        value = value.get(name)
+    return float(skin_prior(name)[k] if value is None else value)
+
+
 def register_segments(landmarks: dict, static_trial, *, sides=("r", "l"), segments=None,
                       on_missing: str = "raise", normals: dict | None = None,
-                      surfaces: dict | None = None, skin_thickness: float | dict = SKIN_THICKNESS,
-                      skin_sd: float | dict = SKIN_THICKNESS_SD, marker_radius: float = MARKER_RADIUS,
+                      surfaces: dict | None = None, skin_thickness: float | dict | None = None,
+                      skin_sd: float | dict | None = None, marker_radius: float = MARKER_RADIUS,
                       placement_sd: float = MARKER_PLACEMENT_SD, k_outlier: float = 3.0,
                       landmarks_source: str = "landmarks.json") -> SegmentRegistrations:
     """Register every segment's MRI landmarks to the static-trial markers.
@@ -621,7 +644,8 @@ def register_segments(landmarks: dict, static_trial, *, sides=("r", "l"), segmen
     on_missing : ``"raise"`` (default) or ``"skip"``: what to do with a
         segment that has fewer than 3 correspondences (skipped ones are
         listed with the reason in ``result.skipped``)
-    skin_thickness, skin_sd : m, one value or {marker name: m}
+    skin_thickness, skin_sd : m, one value or {marker name: m}; default (and names missing from a dict):
+        the per-site population prior `skin_prior` (soft tissue along the bone's outward normal)
     placement_sd : m, marker placement sd added to the static scatter
 
     Returns
@@ -706,9 +730,8 @@ def register_segments(landmarks: dict, static_trial, *, sides=("r", "l"), segmen
                 others = np.delete(P, i, axis=0)
                 ref = others.mean(axis=0)
             N[i], nsd[i] = P[i] - ref, GUESSED_NORMAL_SD_DEG
-        skin = np.array([skin_thickness.get(n, SKIN_THICKNESS) if isinstance(skin_thickness, dict) else skin_thickness
-                         for n in pair], float)
-        skin_s = np.array([skin_sd.get(n, SKIN_THICKNESS_SD) if isinstance(skin_sd, dict) else skin_sd for n in pair], float)
+        skin = np.array([_per_marker(skin_thickness, n, 0) for n in pair], float)
+        skin_s = np.array([_per_marker(skin_sd, n, 1) for n in pair], float)
         out[seg_name] = register_landmarks(
             P, np.array([static[n][0] for n in pair]), np.array([covs[n] for n in pair]),
             np.array([static[n][1] for n in pair]), N, skin + marker_radius, offset_sd=skin_s, normal_sd_deg=nsd,

@@ -42,6 +42,7 @@ from kinematics.joints import CustomJoint, Transform, TransformAxis, free, revol
 from kinematics.functions import Linear
 from kinematics.model import Body, Coordinate, Marker, Model
 from kinematics.pig import SegmentPose, joint_angles, pelvis_frame
+from kinematics.soft_tissue import draw_thickness
 from kinematics.subject import SubjectMeasurements
 
 __all__ = ["LAB_FROM_BODY", "Site", "PhantomSkeleton", "phantom_skeleton", "SIDES", "MARKER_RADIUS",
@@ -102,6 +103,8 @@ class PhantomSkeleton:
     subject : SubjectMeasurements
         What a gait lab would measure on this subject (tape and calliper on the skin).
     tibial_torsion : dict side -> rad, in Plug-in-Gait's convention (`kinematics.pig.tibia_frame`).
+    tissue_thickness : dict site (``ASI``, ``PSI``, ``KNE``...) -> m, this subject's skin-to-bone distance
+        under the marker (pelvis: drawn around `kinematics.soft_tissue`, along the bone's outward normal).
     """
 
     model: Model
@@ -114,6 +117,7 @@ class PhantomSkeleton:
     subject: SubjectMeasurements
     tibial_torsion: dict
     seed: int = 0
+    tissue_thickness: dict = field(default_factory=dict)
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     # ---------------------------------------------------------------- coordinates
@@ -213,6 +217,15 @@ def _pose_frame(origin, z, y_hint) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(origin, float), np.column_stack([np.cross(y, z), y, z])
 
 
+def _sdf_normal_body(ph, bone: str, p_body: np.ndarray, h: float = 2e-4) -> np.ndarray:
+    """Outward unit normal (body frame) of `bone` at `p_body`: the phantom SDF's central-difference gradient."""
+    A = np.asarray(ph.placement, float)
+    ps = A[:3, :3] @ p_body + A[:3, 3]
+    E = h * np.eye(3)
+    g = (ph.sdf(bone, ps + E) - ph.sdf(bone, ps - E)) / (2 * h)
+    return _unit(A[:3, :3].T @ g)
+
+
 def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
     """Build the skeleton model of a `phantoms.anatomy.Phantom` (both legs needed).
 
@@ -255,9 +268,16 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         normals[name] = n
         body_of[name] = body
 
+    # Pelvis markers: soft tissue measured along the bone's outward normal (as CT/MRI/ultrasound measure it),
+    # one thickness per site and subject drawn around the population table (kinematics.soft_tissue; both
+    # sides share it), from its own stream so the knee laws do not change with it.
+    rng_t = np.random.default_rng([seed, 7])
+    for site in ("ASI", "PSI"):
+        tissue[site] = draw_thickness(rng_t, site)
     for S in ("R", "L"):
-        put(f"{S}ASI", "pelvis", lab(plm[f"{S}ASI"]), _X, tissue["ASI"])
-        put(f"{S}PSI", "pelvis", lab(plm[f"{S}PSI"]), -_X, tissue["PSI"])
+        for site in ("ASI", "PSI"):
+            p_body = np.asarray(plm[f"{S}{site}"], float)
+            put(f"{S}{site}", "pelvis", lab(p_body), lab(_sdf_normal_body(ph, "pelvis", p_body)), tissue[site])
     joints = {}
     for s in SIDES:
         S = s.upper()
@@ -439,4 +459,5 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         inter_asis_distance=dist("RASI", "LASI"), marker_diameter=2 * r,
         height=float(ph.params.stature), mass=float(round(70.0 * s_**2, 1)),
         left_tibial_torsion=tors["l"], right_tibial_torsion=tors["r"], source=f"phantom seed {ph.seed}")
-    return PhantomSkeleton(model, q0, sites, sk_normals, centres, frame_offsets, laws, subject, tors, seed)
+    return PhantomSkeleton(model, q0, sites, sk_normals, centres, frame_offsets, laws, subject, tors, seed,
+                           tissue_thickness=dict(tissue))

@@ -182,3 +182,35 @@ def test_write_trials(tmp_path, phantom):
     subj = read_subject(tmp_path / "subject.json")
     assert 0.8 < subj.right_leg_length < 1.0 and 0.2 < subj.inter_asis_distance < 0.3
     assert res["motion"]["trials"][1]["name"] == "gait_01"
+
+
+def test_pelvis_markers_sit_along_the_bone_normal_at_the_subjects_tissue_thickness(world, phantom):
+    """ASIS/PSIS marker centre = landmark + (tissue + marker radius) n, n the pelvis SDF's outward normal."""
+    from phantoms.skeleton import LAB_FROM_BODY, MARKER_RADIUS, phantom_skeleton
+
+    sk, _, _ = world
+    st = sk.state(sk.standing_q)
+    names = ["RASI", "LASI", "RPSI", "LPSI"]
+    bt = phantom.body_truth()["bones"]
+    A = phantom.placement
+    expect = []
+    for n in names:
+        p_body = np.asarray(bt["pelvis"]["landmarks"][n], float)
+        # the bone normal, from the SDF in the scanner frame (finite differences at 0.1 mm)
+        ps = A[:3, :3] @ p_body + A[:3, 3]
+        g = np.array([phantom.sdf("pelvis", (ps + 1e-4 * e)[None])[0] - phantom.sdf("pelvis", (ps - 1e-4 * e)[None])[0]
+                      for e in np.eye(3)])
+        nrm = LAB_FROM_BODY @ (A[:3, :3].T @ g) / np.linalg.norm(g)
+        assert abs(nrm[0]) < np.cos(np.radians(3.0))   # not the lab forward axis: tilted ~12 deg on these phantoms
+        expect.append(LAB_FROM_BODY @ p_body + (sk.tissue_thickness[n[1:]] + MARKER_RADIUS) * nrm)
+    # the standing pose moves the pelvis rigidly: fit the expected sites + both hip centres onto the model's
+    c = sk.centres_lab(st)
+    P = np.array(expect + [LAB_FROM_BODY @ bt[f"femur_{s}"]["landmarks"]["femoral_head_centre"] for s in "rl"])
+    Q = np.vstack([sk.sites_lab(st, names)[0], c["hip_r"][0], c["hip_l"][0]])
+    pc, qc = P.mean(0), Q.mean(0)
+    U, _, Vt = np.linalg.svd((P - pc).T @ (Q - qc))
+    R = Vt.T @ np.diag([1, 1, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+    assert np.abs((P - pc) @ R.T + qc - Q).max() < 2e-5   # 0.02 mm: a 1 deg normal error is 0.3-0.5 mm here
+    # one thickness per site and subject, seeded, positive and plausible (CT: ASIS 9.7 +- 7, PSIS 19.6 +- 10.9 mm)
+    assert 0.0 < sk.tissue_thickness["ASI"] < 0.08 and 0.0 < sk.tissue_thickness["PSI"] < 0.12
+    assert phantom_skeleton(phantom).tissue_thickness == sk.tissue_thickness

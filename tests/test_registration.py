@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from kinematics.markers import MarkerTrial
 from personalize.errors import InputError
-from personalize.registration import (MARKER_RADIUS, SKIN_THICKNESS, register_landmarks, register_segments,
+from personalize.registration import (MARKER_RADIUS, SKIN_THICKNESS, register_landmarks, register_segments, skin_prior,
                                       static_marker_positions)
 
 R_TRUE = Rotation.from_rotvec([0.3, -0.5, 1.2]).as_matrix()
@@ -197,7 +197,7 @@ def world():
         nrm = flat[n] - ref
         nrm /= np.linalg.norm(nrm)
         normals[n] = nrm
-        centre = flat[n] + (SKIN_THICKNESS + MARKER_RADIUS) * nrm
+        centre = flat[n] + (skin_prior(n)[0] + MARKER_RADIUS) * nrm   # per-site tissue (the default prior)
         Rs, ts = poses[seg]
         pos[:, j] = Rs @ centre + ts + rng.normal(0, 0.002, 3) + rng.normal(0, 0.0005, (40, 3))
     pos[5:8, 3] = np.nan  # gaps are ignored by the robust static positions
@@ -340,3 +340,19 @@ def test_segment_selection_and_skipping(world):
     assert set(only) == {"pelvis", "femur_l"}
     with pytest.raises(InputError, match="unknown segment"):
         register_segments(lm, trial, segments=("thigh_r",))
+
+
+def test_default_soft_tissue_prior_is_per_site(world):
+    """Markers over site-specific tissue (PSIS 19.6 mm, ASIS 9.7 mm): the per-site default prior recovers the pelvis;
+    one uniform 5 mm thickness shifts it (the systematic bias a single default caused)."""
+    lm, trial, poses, normals, flat = world
+    names = ("RASI", "LASI", "RPSI", "LPSI", "SYMP")
+    assert skin_prior("RPSI")[0] > skin_prior("RASI")[0] > 0.005
+    c = np.mean([flat[n] for n in names], axis=0)
+    Rt, tt = poses["pelvis"]
+    per_site = register_segments(lm, trial, normals=normals, segments=("pelvis",))["pelvis"]
+    uniform = register_segments(lm, trial, normals=normals, segments=("pelvis",), skin_thickness=SKIN_THICKNESS,
+                                skin_sd=0.003)["pelvis"]
+    err = lambda r: float(np.linalg.norm(r.R @ c + r.t - (Rt @ c + tt)))  # noqa: E731
+    assert err(per_site) < 0.003
+    assert err(uniform) > 2 * err(per_site) and err(uniform) > 0.003
