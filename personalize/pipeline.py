@@ -605,7 +605,35 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
             pts["mtp"] = (toe - 0.01 * fwd + np.array([0.0, 0.0, -0.02]), left)
             out.sources[f"mtp_{s}"] = "default: medio-lateral axis under the TOE marker"
         out.centres[s], out.axes[s], out.points[s] = c, a, pts
+    _note_inconsistencies(out)
     return out
+
+
+def _note_inconsistencies(est: "JointEstimates", p_min: float = 0.01) -> None:
+    """Say so in ``notes`` when a registration or a fusion fails its χ² test (p < `p_min`).
+
+    A pelvis whose soft tissue is far thicker than the prior, a misplaced marker or an MRI of
+    another subject shows up here first; the estimates stay (with inflated covariances), flagged.
+    """
+    for name, r in est.registrations.items():
+        if r.p_value < p_min:
+            est.notes.append(f"low confidence: {name} registration residuals {r.rms * 1e3:.1f} mm rms exceed the "
+                             f"declared marker/soft-tissue noise (chi2 {r.chi2:.1f} on {r.dof} dof, p = {r.p_value:.1g}); "
+                             "its MRI estimates carry an inflated covariance")
+    hj = est.hip_joint
+    if hj is not None and hj.p_value is not None and hj.p_value < p_min:
+        est.notes.append(f"low confidence: MRI and motion hip centres disagree (chi2 {hj.chi2:.1f} on {hj.dof} dof, "
+                         f"p = {hj.p_value:.1g}); the fused hip centres are a compromise, check the pelvis markers")
+    for kind, per_side in (("axis", est.axes), ("centre", est.centres)):
+        for s, joints in per_side.items():
+            for jn, e in joints.items():
+                if kind == "centre" and jn == "hip" and est.hip_joint is not None:
+                    continue  # said once above for both hips
+                f = e.get("fused") if isinstance(e, dict) else None
+                p = getattr(f, "p_value", None)
+                if p is not None and p < p_min:
+                    est.notes.append(f"low confidence: {jn} {kind} ({s}) MRI and motion estimates disagree "
+                                     f"(p = {p:.1g}); fused anyway")
 
 
 def _pig_static(inputs: SubjectInputs):

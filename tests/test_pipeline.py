@@ -281,3 +281,17 @@ def test_demo_model_in_opensim(demo, opensim, tmp_path):
     assert np.mean(ref["rms"]) < 8e-3
     # the engine on the re-loaded model.osim gives what the pipeline reported for its own model
     assert abs(np.nanmean(eng.rms) * 1e3 - summary["pipeline"]["ik"]["gait_01"]["rms_mean_mm"]) < 0.05
+
+
+def test_implausible_pelvis_registration_is_flagged(subject, tmp_path):
+    """Seed 2 draws a +3 sd ASIS soft tissue (54 mm): the markers cannot tell, but the registration's χ² and the
+    MRI/motion hip disagreement can, and the summary says so; the typical module subject raises no such note."""
+    subj = write_phantom_subject(tmp_path / "thick", seed=2, voxel_mm=2.0)
+    summary = run_subject(subj, tmp_path / "out")
+    assert summary["errors"]["hip_centre_mm"]["mri"] > 15.0
+    notes = " | ".join(summary["notes"])
+    assert "low confidence: pelvis registration" in notes
+    assert "hip centres disagree" in notes
+    assert summary["errors"]["hip_centre_mm"]["fused"] < summary["errors"]["hip_centre_mm"]["mri"]
+    _, _, typical = subject
+    assert not any(n.startswith("low confidence: pelvis") for n in typical["notes"])
