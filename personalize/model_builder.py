@@ -2,8 +2,10 @@
 
 Every parameter is given in ONE frame: the lab frame of the static trial
 (X forward, Y left, Z up, metres), the subject standing still.  Bodies are
-built in that pose, so that the standing pose is q = 0 for every joint
-coordinate (the pelvis' free joint holds its static pose):
+built in that pose; the standing pose is q = 0 for every joint coordinate
+except the pelvis' free joint (its static pose) and the hips, whose angles are
+anatomical (femur frame relative to the pelvis frame, Plug-in-Gait/ISB), so
+the standing pose carries its own hip angles (``standing_q``):
 
 * ``pelvis``: Plug-in-Gait pelvis frame of the static markers (origin
   mid-ASIS, x anterior, y left, z up);
@@ -15,8 +17,9 @@ coordinate (the pelvis' free joint holds its static pose):
 
 Joints:
 
-* hip: three rotations (flexion about -y, adduction about ±x, internal
-  rotation about ±z of the pelvis axes) about the fused hip centre;
+* hip: three body-fixed rotations (flexion about -y, adduction about ±x,
+  internal rotation about ±z) from the pelvis axes to the femur axes, about
+  the fused hip centre;
 * knee: a correlative knee (Pronost et al. 2010): rotations flexion about
   the fused knee axis Y_k, ab/adduction about ±X_k, rotation about ±Z_k
   (Z_k the femur's long axis made orthogonal to Y_k), and translations
@@ -261,9 +264,11 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
                  _inertia(FOOT_SPLIT["calcn"] * m_ft, L_ft, DE_LEVA["foot"][2])),
             Body(f"toes_{s}", FOOT_SPLIT["toes"] * m_ft, np.zeros(3), _inertia(FOOT_SPLIT["toes"] * m_ft, 0.25 * L_ft, DE_LEVA["foot"][2])),
         ]
-        # hip: joint frame = pelvis axes at the hip centre (angles zero standing)
+        # hip: parent frame = pelvis axes, child frame = femur axes at the hip centre, so that the angles are the
+        # anatomical (Plug-in-Gait / ISB) ones: zero when the femur frame is aligned with the pelvis frame, and the
+        # standing pose has its own hip angles (e.g. flexion = the pelvic tilt of a subject with a vertical femur)
         joints.append(CustomJoint(
-            f"hip_{s}", "pelvis", f"femur_{s}", tuple(hc), offset("pelvis", H, R_p), offset(f"femur_{s}", H, R_p),
+            f"hip_{s}", "pelvis", f"femur_{s}", tuple(hc), offset("pelvis", H, R_p), offset(f"femur_{s}", H, R_f),
             rotations=(ax(-_Y, hc[0]), ax(sg * _X, hc[1]), ax(sg * _Z, hc[2])), kind_name="custom"))
         # knee: flexion exactly about the fused axis
         R_k = _frame_yz(k_left, H - K)
@@ -299,6 +304,12 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
     ix = model.coordinate_index
     q0[[ix("pelvis_rotation"), ix("pelvis_list"), ix("pelvis_tilt")]] = Rotation.from_matrix(R_p).as_euler("ZXY")
     q0[[ix("pelvis_tx"), ix("pelvis_ty"), ix("pelvis_tz")]] = o_p
+    for s in p.sides:
+        # static hip angles: R_pᵀ R_f = Ry(-flexion) Rx(±adduction) Rz(±rotation), body-fixed
+        sg = 1.0 if s == "r" else -1.0
+        R_f = frames[f"femur_{s}"][1]
+        phi, psi, chi = Rotation.from_matrix(R_p.T @ R_f).as_euler("YXZ")
+        q0[[ix(f"hip_flexion_{s}"), ix(f"hip_adduction_{s}"), ix(f"hip_rotation_{s}")]] = (-phi, sg * psi, sg * chi)
     # default pose = static pose (IK's cold start and OpenSim's default state)
     coords_def = tuple(Coordinate(c.name, c.kind, float(q0[i]), c.range, c.locked, c.clamped)
                        for i, c in enumerate(model.coordinates))
