@@ -369,13 +369,6 @@ def _aliased_static(static: MarkerTrial) -> MarkerTrial:
     return MarkerTrial(tuple(names), np.concatenate(pos, axis=1), static.rate, static.time, static.source, static.extra)
 
 
-def _normal(surface, p):
-    V = np.asarray(surface.mesh.vertices, float)
-    N = np.asarray(surface.mesh.vertex_normals, float)
-    k = int(np.argmin(np.sum((V - p) ** 2, axis=1)))
-    return N[k] / np.linalg.norm(N[k])
-
-
 def _register_with_centre(seg, lm_bones, bone_names, marker_names, static_pos, surfaces, centre_mri, centre_lab,
                           axis=None, virtual=None, fallback=()):
     """Register one segment from its markers plus one joint centre known in both frames.
@@ -393,14 +386,14 @@ def _register_with_centre(seg, lm_bones, bone_names, marker_names, static_pos, s
     Plug-in-Gait stands in, and the MRI estimates of that segment are then
     not independent of the motion ones).
     """
-    from .registration import MARKER_RADIUS, register_landmarks, skin_prior
+    from .registration import MARKER_RADIUS, _surface_normal, register_landmarks, skin_prior
 
     P, M, Cq, Cm, N, off, osd, names = [], [], [], [], [], [], [], []
     for b in bone_names:
         for n, lm in lm_bones.get(b, {}).get("landmarks", {}).items():
             if n in marker_names and n in static_pos and b in surfaces:
                 p = np.asarray(lm["position"], float)
-                nrm = _normal(surfaces[b], p)
+                nrm = _surface_normal(surfaces[b].mesh, p)
                 if axis is not None:
                     c0, u = np.asarray(axis[0], float), np.asarray(axis[1], float) / np.linalg.norm(axis[1])
                     p = c0 + np.dot(p - c0, u) * u
