@@ -67,8 +67,8 @@ Both hip centres are then fused jointly (`personalize.fusion.fuse_linear`: the
 centre), so a functional centre also corrects the registration error the
 other hip shares.  The knee axes are calibrated the same way
 (`MRI_KNEE_AXIS_SD_SCALE`, `MOTION_KNEE_AXIS_SD_DEG`) and so are the ankle axes
-(`MRI_ANKLE_AXIS_SD_SCALE`, transmalleolar `MOTION_ANKLE_AXIS_SD_DEG`, a phantom
-value).  Other floors: Plug-in-Gait knee/ankle centres `PIG_CENTRE_SD`,
+(`MRI_ANKLE_AXIS_SD_SCALE`; the transmalleolar `MOTION_ANKLE_AXIS_SD_DEG` is
+the palpation value, not the phantoms' 0.07 deg).  Other floors: Plug-in-Gait knee/ankle centres `PIG_CENTRE_SD`,
 torsioned-tibia ankle axis `PIG_ANKLE_AXIS_SD_DEG`.
 """
 from __future__ import annotations
