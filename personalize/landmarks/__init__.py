@@ -115,7 +115,8 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
             holder = {}
 
             def _tib(s=s, tname=tname, fname=fname, holder=holder):
-                r, fc = detect_tibia(surf[tname], tname, fibula=surf.get(fname))
+                r, fc = detect_tibia(surf[tname], tname, fibula=surf.get(fname), femur=surf.get(f"femur_{s}"),
+                                     talus=surf.get(f"talus_{s}"))
                 holder["fc"] = fc
                 return r
             run(tname, _tib)

@@ -64,8 +64,11 @@ def errors_against_truth(ls, joints: dict, truth: dict, side: str = "r") -> dict
 
 
 def phantom_case(seed: int, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, side: str = "r",
-                 bones=LEG_BONES) -> dict:
-    """Rasterise, surface, detect; returns ``{"errors": ..., "flags": ..., "landmarks": LandmarkSet}``."""
+                 bones=LEG_BONES, params: dict | None = None) -> dict:
+    """Rasterise, surface, detect; returns ``{"errors": ..., "flags": ..., "landmarks": LandmarkSet}``.
+
+    `params` overrides the phantom's anatomy (`phantoms.make_phantom` keywords, e.g. a validation spec's).
+    """
     from phantoms.anatomy import make_phantom
     from phantoms.imaging import label_volume
     from personalize.frames import joints_from_landmarks
@@ -74,7 +77,7 @@ def phantom_case(seed: int, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, side: 
 
     from . import detect_landmarks
 
-    ph = make_phantom(seed=seed)
+    ph = make_phantom(seed=seed, **(params or {}))
     names = [f"{b}_{side}" for b in bones]
     labels, affine_mm, label_map = label_volume(ph, voxel=voxel, noise=noise, seed=seed, bones=names)
     vol = LabelVolume(labels=labels, affine_m=np.diag([1e-3, 1e-3, 1e-3, 1.0]) @ affine_mm,

@@ -86,7 +86,8 @@ def _iso(s: float) -> np.ndarray:
     return (s * s) * np.eye(3)
 
 
-def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None = None):
+def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None = None, *,
+                 femur: Surface | None = None, talus: Surface | None = None):
     """Detect tibial landmarks, axes and the plafond cylinder.
 
     Parameters
@@ -97,6 +98,11 @@ def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None
         ``tibia_r`` or ``tibia_l``.
     fibula : Surface, optional
         A separately segmented fibula (used as the lateral-posterior cue).
+    femur, talus : Surface, optional
+        Neighbours from the same scan: the end that articulates with the
+        femur is proximal, the one on the talus distal, and an end lying on
+        its neighbour is not a field-of-view cut (a flat plateau can look
+        like one).
 
     Returns
     -------
@@ -124,22 +130,35 @@ def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None
     V, Nrm, A = tib.vertices, tib.normals, tib.areas
     lb = long_bone_axes(tib)
     e, L = lb.axis, lb.length
-    if lb.cut[1] and not lb.cut[-1]:
+    cut = dict(lb.cut)
+    near = _neighbour_ends(V, lb, femur, talus)
+    if near is not None:
+        # bones from one scan sit in their joints: trust the neighbours over the end shapes
+        ps = near
+        for sgn in (ps, -ps):
+            if cut[sgn] and _end_on(V, lb, sgn, femur if sgn == ps else talus):
+                cut[sgn] = False
+        if cut[1] and cut[-1]:
+            res.flag(FLAG_TRUNCATED, "both tibial ends are planar cuts")
+            res.flag(FLAG_LOW_CONFIDENCE)
+        elif cut[1] or cut[-1]:
+            res.flag(FLAG_TRUNCATED, "tibia truncated")
+    elif cut[1] and not cut[-1]:
         ps = -1 if lb.flatness[-1] > 0.65 else 1
         res.flag(FLAG_TRUNCATED, "tibia truncated")
-    elif lb.cut[-1] and not lb.cut[1]:
+    elif cut[-1] and not cut[1]:
         ps = 1 if lb.flatness[1] > 0.65 else -1
         res.flag(FLAG_TRUNCATED, "tibia truncated")
     else:
         ps = 1 if lb.area[1] > lb.area[-1] else -1
-        if lb.cut[1]:
+        if cut[1]:
             res.flag(FLAG_TRUNCATED, "both tibial ends are planar cuts")
             res.flag(FLAG_LOW_CONFIDENCE)
     prox = ps * e
     hp = ps * lb.h
     _femur_check(tib, res, lb, name)
     top, bot = float(hp.max()), float(hp.min())
-    has_prox, has_dist = not lb.cut[ps], not lb.cut[-ps]
+    has_prox, has_dist = not cut[ps], not cut[-ps]
     lo = bot + (0.3 * L if has_dist else 0.05 * L)
     hi = top - (0.3 * L if has_prox else 0.05 * L)
     sp, sd = shaft_line(tib, e, lb.h, *sorted((ps * lo, ps * hi)))
@@ -221,6 +240,32 @@ def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None
         res.frames["isb"] = {"origin": lo_pt.copy(), "rotation": np.column_stack([X, Y, Z])}
     res.frames["anatomical"] = {"origin": sp.copy(), "rotation": np.column_stack([ant, sd, right])}
     return res, fib_comp
+
+
+#: an end of the tibia whose tip lies within this distance of the femur (talus) articulates with it, m
+NEIGHBOUR_GAP = 0.01
+
+
+def _end_on(V: np.ndarray, lb, sgn: int, other: Surface | None) -> bool:
+    """Whether the tip (last 5 mm) of the tibia's ``sgn`` end lies within `NEIGHBOUR_GAP` of `other`."""
+    if other is None:
+        return False
+    hh = sgn * lb.h
+    tip = hh > hh.max() - 0.005
+    d, _ = other.tree().query(V[tip], distance_upper_bound=NEIGHBOUR_GAP)
+    return bool(np.isfinite(d).mean() > 0.2)
+
+
+def _neighbour_ends(V: np.ndarray, lb, femur: Surface | None, talus: Surface | None) -> int | None:
+    """Sign (+1 / -1 along ``lb.axis``) of the proximal end from the femur and talus, or None if they do not tell."""
+    votes = []
+    for other, toward in ((femur, 1), (talus, -1)):
+        on = [s for s in (1, -1) if _end_on(V, lb, s, other)]
+        if len(on) == 1:
+            votes.append(toward * on[0])
+    if not votes or len(set(votes)) > 1:
+        return None
+    return votes[0]
 
 
 def _femur_check(tib: Surface, res: BoneLandmarks, lb, name: str) -> None:
