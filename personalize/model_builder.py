@@ -2,10 +2,13 @@
 
 Every parameter is given in ONE frame: the lab frame of the static trial
 (X forward, Y left, Z up, metres), the subject standing still.  Bodies are
-built in that pose; the standing pose is q = 0 for every joint coordinate
-except the pelvis' free joint (its static pose) and the hips, whose angles are
-anatomical (femur frame relative to the pelvis frame, Plug-in-Gait/ISB), so
-the standing pose carries its own hip angles (``standing_q``):
+built in that pose; the standing pose is q = 0 for the ankle, subtalar and
+metatarsophalangeal coordinates, while the pelvis' free joint (its static
+pose), the hips (femur frame relative to the pelvis frame) and the knees
+(tibia frame relative to the femur's knee frame) have anatomical angles
+(Plug-in-Gait/ISB: zero when the frames are aligned), so the standing pose
+carries its own hip and knee angles (``standing_q``; a standing knee is
+typically a few degrees from straight):
 
 * ``pelvis``: Plug-in-Gait pelvis frame of the static markers (origin
   mid-ASIS, x anterior, y left, z up);
@@ -22,10 +25,13 @@ Joints:
   the fused hip centre;
 * knee: a correlative knee (Pronost et al. 2010): rotations flexion about
   the fused knee axis Y_k, ab/adduction about ±X_k, rotation about ±Z_k
-  (Z_k the femur's long axis made orthogonal to Y_k), and translations
-  knee_tx (anterior), knee_ty (proximal), knee_tz (lateral) that are a
-  linear law of the three rotations (`kinematics.correlative.CorrelativeLaw`,
-  enforced as linear couplings);
+  (Z_k the femur's long axis made orthogonal to Y_k), from the femur's knee
+  frame (Y_k, Z_k) to the tibia frame, and translations knee_tx (anterior),
+  knee_ty (proximal), knee_tz (lateral) that are a linear law of the three
+  rotations (`kinematics.correlative.CorrelativeLaw`, enforced as linear
+  couplings).  A law's constant term is the translation at the STANDING
+  pose (zero: the fused knee centre is the standing one); the builder
+  re-expresses it in the model's coordinates, c_0' = c_0 - S q_standing;
 * ankle, subtalar and metatarsophalangeal: revolute joints about the fused
   axes (dorsiflexion, inversion, extension positive); the mtp coordinate is
   locked unless the toes carry markers.
@@ -40,7 +46,7 @@ the subject's mass and the model's own segment lengths.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -227,6 +233,7 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         return Transform(R.T @ R_joint, R.T @ (np.asarray(origin, float) - o))
 
     ax = lambda v, c: TransformAxis(np.asarray(v, float), Linear(), (c,))  # noqa: E731
+    knee_frames = {}
     for s, sp in p.sides.items():
         sg = 1.0 if s == "r" else -1.0
         H, K, A = (np.asarray(v, float) for v in (sp.hip, sp.knee, sp.ankle))
@@ -270,10 +277,12 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         joints.append(CustomJoint(
             f"hip_{s}", "pelvis", f"femur_{s}", tuple(hc), offset("pelvis", H, R_p), offset(f"femur_{s}", H, R_f),
             rotations=(ax(-_Y, hc[0]), ax(sg * _X, hc[1]), ax(sg * _Z, hc[2])), kind_name="custom"))
-        # knee: flexion exactly about the fused axis
+        # knee: flexion exactly about the fused axis; child frame = the tibia frame, so that the standing angles
+        # are the anatomical ones (flexion and varus between the femoral and tibial mechanical axes)
         R_k = _frame_yz(k_left, H - K)
+        knee_frames[s] = R_k
         joints.append(CustomJoint(
-            f"knee_{s}", f"femur_{s}", f"tibia_{s}", tuple(kc + kt), offset(f"femur_{s}", K, R_k), offset(f"tibia_{s}", K, R_k),
+            f"knee_{s}", f"femur_{s}", f"tibia_{s}", tuple(kc + kt), offset(f"femur_{s}", K, R_k), offset(f"tibia_{s}", K, R_t),
             rotations=(ax(_Y, kc[0]), ax(sg * _X, kc[1]), ax(sg * _Z, kc[2])),
             translations=(ax(_X, kt[0]), ax(_Z, kt[1]), ax(-sg * _Y, kt[2])), kind_name="custom"))
         joints.append(revolute(f"ankle_{s}", f"tibia_{s}", f"talus_{s}", f"ankle_angle_{s}", axis=R_t.T @ a_right,
@@ -295,6 +304,16 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         raise InputError("model", "no static marker could be placed on the model")
     base = Model(tuple(bodies), tuple(joints), tuple(coords), tuple(markers), gravity=np.array([0.0, 0.0, -9.80665]),
                  name=p.name)
+    knee_q = {}
+    for s in p.sides:
+        # static knee angles: R_kᵀ R_t = Ry(flexion) Rx(±adduction) Rz(±rotation), body-fixed
+        sg = 1.0 if s == "r" else -1.0
+        phi, psi, chi = Rotation.from_matrix(knee_frames[s].T @ frames[f"tibia_{s}"][1]).as_euler("YXZ")
+        knee_q[s] = np.array([phi, sg * psi, sg * chi])
+        law = laws[s]
+        C = np.array(law.coefficients, float)
+        C[:, -1] = C[:, -1] - C[:, :-1] @ knee_q[s]        # the law's constant term is the standing translation
+        laws[s] = replace(law, coefficients=C)
     coupling = None
     for s in p.sides:
         c = laws[s].to_coupling(base.coordinate_names)
@@ -310,6 +329,9 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         R_f = frames[f"femur_{s}"][1]
         phi, psi, chi = Rotation.from_matrix(R_p.T @ R_f).as_euler("YXZ")
         q0[[ix(f"hip_flexion_{s}"), ix(f"hip_adduction_{s}"), ix(f"hip_rotation_{s}")]] = (-phi, sg * psi, sg * chi)
+        q0[[ix(f"knee_flexion_{s}"), ix(f"knee_adduction_{s}"), ix(f"knee_rotation_{s}")]] = knee_q[s]
+        law = laws[s]
+        q0[[ix(n) for n in law.dependent]] = law.predict(knee_q[s][None])[0]
     # default pose = static pose (IK's cold start and OpenSim's default state)
     coords_def = tuple(Coordinate(c.name, c.kind, float(q0[i]), c.range, c.locked, c.clamped)
                        for i, c in enumerate(model.coordinates))
