@@ -9,7 +9,12 @@
 * ``"foot-to-hip"``: the seed's foot-first model (`kinematics.foot_to_hip`):
   knee and ankle axes and centres from the foot and shank markers, the hip
   centre by the centre transformation technique, from the functional trial
-  when given, else from the trial itself.
+  when given, else from the trial itself;
+* ``"blend"``: both chains, each segment's pose blended frame by frame with
+  Gaussian weights from each chain's rigid marker residual on that segment
+  (`kinematics.chain_blend`; needs the static trial), angles recomputed from
+  the blended segments; ``Reconstruction.weights`` holds the foot-to-hip
+  chain's weight per segment and frame.
 
 Both return the same `Reconstruction`: segment frames in the Plug-in-Gait
 convention (x anterior, y left, z proximal; ``tibia_r`` aligned with the knee
@@ -24,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .chain_blend import CENTRE_SEGMENT, blend_poses, chain_residuals
 from .errors import FitError, InputError
 from .foot_to_hip import (REQUIRED_MARKERS, FootToHipCalibration, calibrate, hip_centre_in_pelvis,
                           knee_ankle_axes, seed_femur_frame)
@@ -35,7 +41,7 @@ from .subject import SubjectMeasurements, validate_static
 
 __all__ = ["Reconstruction", "reconstruct", "METHODS", "ANGLE_COLUMNS", "CENTRE_MARKERS", "tibia_fluctuation"]
 
-METHODS = ("pig", "foot-to-hip")
+METHODS = ("pig", "foot-to-hip", "blend")
 SIDES = (("R", "_r"), ("L", "_l"))
 #: angles.mot columns (degrees in the file)
 ANGLE_COLUMNS = tuple(f"{j}_{a}_{s}" for s in ("r", "l") for j in ("hip", "knee", "ankle")
@@ -56,6 +62,8 @@ class Reconstruction:
     angles : dict ``hip_r``, ``knee_r``, ``ankle_r``, ... -> (F, 3) rad, Plug-in-Gait sign conventions
     hip_in_pelvis : dict side -> kinematics.functional.CentreEstimate (functional/CTT hip centres; empty for Davis)
     notes : tuple of str (calibration source, missing calibrations, ...)
+    weights : dict segment -> (F,) weight of the foot-to-hip chain (``blend`` only)
+    residuals : dict chain (``pig``, ``foot-to-hip``) -> dict segment -> (F,) m (``blend`` only)
     """
 
     method: str
@@ -67,6 +75,8 @@ class Reconstruction:
     hip_in_pelvis: dict = field(default_factory=dict)
     notes: tuple = ()
     source: str | None = None
+    weights: dict = field(default_factory=dict)
+    residuals: dict = field(default_factory=dict)
 
     def angle_table(self) -> np.ndarray:
         """(F, 18) radians in the order of `ANGLE_COLUMNS`."""
@@ -257,14 +267,15 @@ def _shank_cov(trial: MarkerTrial, cal: FootToHipCalibration, s: str, sd: float,
     return (median_covariance(sd**2 * Jk @ np.swapaxes(Jk, 1, 2)), median_covariance(sd**2 * Ja @ np.swapaxes(Ja, 1, 2)))
 
 
-def _reconstruct_f2h(trial, subject, static, functional, notes, marker_sd) -> Reconstruction:
+def _reconstruct_f2h(trial, subject, static, functional, notes, marker_sd, hip_est=None) -> Reconstruction:
     cal = calibrate(subject, static)
     notes.append(f"foot-to-hip calibration: {cal.source}")
-    # a functional (star-arc) trial shows hip abduction, which makes the out-of-plane coordinate observable
-    hip_est = _ctt_hips(functional if functional is not None else trial, cal, planar=functional is None)
-    notes.append("hip centres: centre transformation technique on "
-                 + ("the functional trial (3-D)" if functional is not None
-                    else "this trial, in the thigh-shank plane (eq. 30; no functional trial given)"))
+    if hip_est is None:
+        # a functional (star-arc) trial shows hip abduction, which makes the out-of-plane coordinate observable
+        hip_est = _ctt_hips(functional if functional is not None else trial, cal, planar=functional is None)
+        notes.append("hip centres: centre transformation technique on "
+                     + ("the functional trial (3-D)" if functional is not None
+                        else "this trial, in the thigh-shank plane (eq. 30; no functional trial given)"))
     pelvis = pelvis_frame(trial.marker("RASI"), trial.marker("LASI"), sacrum_marker(trial))
     segs = {"pelvis": pelvis}
     centres, cov, angles = {}, {}, {}
@@ -290,6 +301,51 @@ def _reconstruct_f2h(trial, subject, static, functional, notes, marker_sd) -> Re
     return Reconstruction("foot-to-hip", trial.time, centres, cov, segs, angles, hip_est, tuple(notes), trial.source)
 
 
+def _fill_residual(r: np.ndarray, pose: SegmentPose) -> np.ndarray:
+    """A frame whose pose exists but whose segment markers are hidden takes the chain's median residual."""
+    ok_pose = np.all(np.isfinite(pose.axes), axis=(1, 2)) & np.all(np.isfinite(pose.origin), axis=1)
+    fill = float(np.nanmedian(r)) if np.isfinite(r).any() else 1.0
+    return np.where(np.isfinite(r), r, np.where(ok_pose, fill, np.nan))
+
+
+def _reconstruct_blend(trial, subject, static, functional, notes, marker_sd) -> Reconstruction:
+    if static is None:
+        raise InputError("--static", "the blended chains need the static trial (each chain's markers in its "
+                                     "segment frames are taken from it)")
+    a = _reconstruct_pig(trial, subject, static, functional, [])
+    b = _reconstruct_f2h(trial, subject, static, functional, [], marker_sd)
+    a0 = _reconstruct_pig(static, subject, static, functional, [])
+    b0 = _reconstruct_f2h(static, subject, static, functional, [], marker_sd, hip_est=b.hip_in_pelvis)
+    ra = chain_residuals(a.segments, trial, a0.segments, static)
+    rb = chain_residuals(b.segments, trial, b0.segments, static)
+    segs, weights = {}, {}
+    for name, pa in a.segments.items():
+        pb = b.segments.get(name)
+        if pb is None:
+            segs[name] = pa
+            continue
+        bl = blend_poses(pa, pb, _fill_residual(ra[name], pa), _fill_residual(rb[name], pb))
+        segs[name], weights[name] = bl.as_segment_pose(), bl.weight_b
+    centres, cov, angles = {}, {}, {}
+    for s, sfx in SIDES:
+        for j, seg in CENTRE_SEGMENT.items():
+            w = weights[f"{seg}{sfx}"][:, None]
+            ca, cb = a.centres[f"{j}{sfx}"], b.centres[f"{j}{sfx}"]
+            centres[f"{j}{sfx}"] = np.where(np.isfinite(ca) & np.isfinite(cb), (1 - w) * ca + w * cb,
+                                            np.where(np.isfinite(ca), ca, cb))
+            wm = float(np.nanmedian(w)) if np.isfinite(w).any() else 0.5
+            cov[f"{j}{sfx}"] = (1 - wm) ** 2 * a.centre_cov[f"{j}{sfx}"] + wm**2 * b.centre_cov[f"{j}{sfx}"]
+        angles[f"hip{sfx}"] = joint_angles(segs["pelvis"], segs[f"femur{sfx}"], "hip", s)
+        angles[f"knee{sfx}"] = joint_angles(segs[f"femur{sfx}"], segs[f"tibia{sfx}"], "knee", s)
+        angles[f"ankle{sfx}"] = joint_angles(segs[f"tibia_torsioned{sfx}"], segs[f"foot{sfx}"], "ankle", s)
+    med = ", ".join(f"{k} {np.nanmedian(v):.2f}" for k, v in weights.items() if np.isfinite(v).any())
+    notes += [f"pig: {n}" for n in a.notes] + [f"foot-to-hip: {n}" for n in b.notes]
+    notes.append(f"blend: per-frame Gaussian weights from each chain's rigid marker residual; median foot-to-hip "
+                 f"weight per segment: {med}")
+    return Reconstruction("blend", trial.time, centres, cov, segs, angles, a.hip_in_pelvis, tuple(notes), trial.source,
+                          weights, {"pig": ra, "foot-to-hip": rb})
+
+
 def reconstruct(trial: MarkerTrial, method: str = "pig", *, static: MarkerTrial | None = None,
                 subject: SubjectMeasurements, functional: MarkerTrial | None = None,
                 marker_sd: float = 0.001, check_static: bool = True) -> Reconstruction:
@@ -298,7 +354,7 @@ def reconstruct(trial: MarkerTrial, method: str = "pig", *, static: MarkerTrial 
     Parameters
     ----------
     trial : MarkerTrial (lab frame, metres, Z up)
-    method : 'pig' or 'foot-to-hip'
+    method : 'pig', 'foot-to-hip' or 'blend' (both, blended per frame; needs `static`)
     static : static trial of the same subject (foot offsets, foot-to-hip calibration, leg-length check)
     subject : SubjectMeasurements (leg lengths, knee/ankle widths, marker diameter, tibial torsion)
     functional : hip calibration trial (star-arc); PiG: SCoRE hip centres of the thigh clusters,
@@ -311,20 +367,24 @@ def reconstruct(trial: MarkerTrial, method: str = "pig", *, static: MarkerTrial 
     Reconstruction
     """
     if method not in METHODS:
-        raise InputError("--method", f"unknown method {method!r} (pig or foot-to-hip)")
-    _require(trial, method)
+        raise InputError("--method", f"unknown method {method!r} (pig, foot-to-hip or blend)")
+    for m in (("pig", "foot-to-hip") if method == "blend" else (method,)):
+        _require(trial, m)
     _check_geometry(trial)
     notes: list[str] = []
     if static is not None:
-        _require(static, method)
+        for m in (("pig", "foot-to-hip") if method == "blend" else (method,)):
+            _require(static, m)
         _check_geometry(static)
         if check_static:
             validate_static(subject, static)
     if functional is not None:
-        _require(functional, "foot-to-hip" if method == "foot-to-hip" else "functional")
+        _require(functional, "functional" if method == "pig" else "foot-to-hip")
         _check_geometry(functional)
     if method == "pig":
         return _reconstruct_pig(trial, subject, static, functional, notes)
+    if method == "blend":
+        return _reconstruct_blend(trial, subject, static, functional, notes, marker_sd)
     return _reconstruct_f2h(trial, subject, static, functional, notes, marker_sd)
 
 

@@ -26,7 +26,8 @@ Per frame, segment poses of two kinematic chains (top-down Plug-in-Gait and
 foot-to-hip) are blended with the same Gaussian weights, each chain's pose
 error variance taken as its marker residual squared:
 w_b = r_a² / (r_a² + r_b²), R = R_a exp(w_b log(R_aᵀ R_b)) (the weighted
-geodesic mean on SO(3)), t = (1 - w_b) t_a + w_b t_b.
+geodesic mean on SO(3)), t = (1 - w_b) t_a + w_b t_b.  That part lives in
+`kinematics.chain_blend` (the marker-driven side uses it; re-exported here).
 """
 from __future__ import annotations
 
@@ -35,6 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 from scipy.spatial.transform import Rotation
+
+from kinematics.chain_blend import BlendedPoses, blend_poses
 
 from .errors import InputError
 
@@ -443,94 +446,3 @@ def fuse_axes(estimates, names=None, *, frame: str = "proximal") -> FusedAxis:
                      point_covs=[a[3] for a in ax] if with_points else None)
 
 
-# --------------------------------------------------------------------------- per-frame pose blending
-
-
-@dataclass(frozen=True)
-class BlendedPoses:
-    """Per-frame blend of two pose sequences.
-
-    R : (F, 3, 3) rotations (segment -> lab); t : (F, 3) m origins
-    weight_a, weight_b : (F,) weight each chain received (sum 1; NaN where both missing)
-    sd : (F,) m, fused pose error scale √(r_a² r_b² / (r_a² + r_b²))
-    """
-
-    R: np.ndarray
-    t: np.ndarray
-    weight_a: np.ndarray
-    weight_b: np.ndarray
-    sd: np.ndarray
-
-    def as_segment_pose(self):
-        """The blend as a `kinematics.pig.SegmentPose` (origin, axes)."""
-        from kinematics.pig import SegmentPose
-        return SegmentPose(self.t, self.R)
-
-
-def _unpack_pose(p, name: str):
-    if isinstance(p, tuple) and len(p) >= 2:
-        R, t = p[0], p[1]
-    elif hasattr(p, "axes") and hasattr(p, "origin"):
-        R, t = p.axes, p.origin
-    elif hasattr(p, "R") and hasattr(p, "t"):
-        R, t = p.R, p.t
-    else:
-        raise InputError(name, "poses must be (R, t), a SegmentPose or a RigidPose")
-    R, t = np.asarray(R, float), np.asarray(t, float)
-    if R.ndim == 2:
-        R, t = R[None], t.reshape(1, 3)
-    if R.shape[1:] != (3, 3) or t.shape != (R.shape[0], 3):
-        raise InputError(name, f"poses must be R (F, 3, 3) and t (F, 3), got {R.shape} and {t.shape}")
-    return R, t
-
-
-def blend_poses(poses_a, poses_b, residuals_a, residuals_b, *, floor: float = 1e-4) -> BlendedPoses:
-    """Blend two chains' segment poses per frame with Gaussian weights from their residuals.
-
-    Model: each chain's pose error is Gaussian with variance proportional to
-    its squared marker residual, σ² = r² + floor².  The product of the two
-    Gaussians weights chain b by w_b = σ_a² / (σ_a² + σ_b²) and
-
-        R = R_a exp(w_b log(R_aᵀ R_b)),    t = (1 - w_b) t_a + w_b t_b,
-
-    the rotation being the weighted geodesic (Karcher) mean on SO(3) of the
-    two rotations.  A frame missing in one chain (NaN) takes the other.
-
-    Parameters
-    ----------
-    poses_a, poses_b : (R (F, 3, 3), t (F, 3)), SegmentPose or RigidPose
-    residuals_a, residuals_b : scalar or (F,) m, rms marker residual of each chain
-        (NaN: chain unusable in that frame)
-    floor : m, residual floor that keeps a perfect fit from taking all the weight
-
-    Returns
-    -------
-    BlendedPoses
-    """
-    Ra, ta = _unpack_pose(poses_a, "poses_a")
-    Rb, tb = _unpack_pose(poses_b, "poses_b")
-    F = len(Ra)
-    if len(Rb) != F:
-        raise InputError("blend_poses", f"chains have {F} and {len(Rb)} frames")
-    ra = np.broadcast_to(np.asarray(residuals_a, float), (F,))
-    rb = np.broadcast_to(np.asarray(residuals_b, float), (F,))
-    if np.any(ra < 0) or np.any(rb < 0):
-        raise InputError("blend_poses", "residuals must be non-negative")
-    va, vb = ra**2 + floor**2, rb**2 + floor**2
-    ok_a = np.all(np.isfinite(Ra), axis=(1, 2)) & np.all(np.isfinite(ta), axis=1) & np.isfinite(va)
-    ok_b = np.all(np.isfinite(Rb), axis=(1, 2)) & np.all(np.isfinite(tb), axis=1) & np.isfinite(vb)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        wb = np.where(ok_a & ok_b, va / (va + vb), np.where(ok_b, 1.0, np.where(ok_a, 0.0, np.nan)))
-        sd = np.where(ok_a & ok_b, np.sqrt(va * vb / (va + vb)), np.where(ok_b, np.sqrt(vb), np.where(ok_a, np.sqrt(va), np.nan)))
-    both = ok_a & ok_b
-    R = np.full((F, 3, 3), np.nan)
-    t = np.full((F, 3), np.nan)
-    R[ok_a & ~ok_b], t[ok_a & ~ok_b] = Ra[ok_a & ~ok_b], ta[ok_a & ~ok_b]
-    R[ok_b & ~ok_a], t[ok_b & ~ok_a] = Rb[ok_b & ~ok_a], tb[ok_b & ~ok_a]
-    if both.any():
-        qa = Rotation.from_matrix(Ra[both])
-        qb = Rotation.from_matrix(Rb[both])
-        rel = (qa.inv() * qb).as_rotvec()
-        R[both] = (qa * Rotation.from_rotvec(wb[both, None] * rel)).as_matrix()
-        t[both] = (1 - wb[both, None]) * ta[both] + wb[both, None] * tb[both]
-    return BlendedPoses(R, t, 1.0 - wb, wb, sd)

@@ -1,7 +1,8 @@
-"""``personalize markers TRIAL.c3d --method pig|foot-to-hip --subject S --out DIR``: joint centres and angles.
+"""``personalize markers TRIAL.c3d --method pig|foot-to-hip|blend --subject S --out DIR``: joint centres and angles.
 
-Reconstructs the legs of a marker trial with Plug-in-Gait (hip first) or
-the seed's foot-to-hip model (`kinematics.reconstruction`) and writes into
+Reconstructs the legs of a marker trial with Plug-in-Gait (hip first),
+the seed's foot-to-hip model, or both blended per frame with Gaussian weights
+(`kinematics.reconstruction`, `kinematics.chain_blend`) and writes into
 DIR (staged: nothing is written on error):
 
 ``centres.trc``
@@ -15,7 +16,9 @@ DIR (staged: nothing is written on error):
     the angle curves;
 ``report.json``
     method, notes (calibrations used), marker gaps (filled / left as NaN),
-    centre standard deviations (mm), hip centres in the pelvis frame (m).
+    centre standard deviations (mm), hip centres in the pelvis frame (m);
+    for ``blend`` the foot-to-hip chain's weight per segment (median, 10-90 %)
+    and each chain's median rigid marker residual per segment (mm).
 
 Marker gaps up to ``--max-gap`` seconds are filled by cubic splines; longer
 gaps, and gaps at the trial ends, stay missing (those frames give NaN) and
@@ -138,6 +141,14 @@ def run_markers(trial: Path, *, method: str, out: Path, subject: Optional[Path] 
                               "rms_m": float(e.rms), "frames": int(e.n_frames)} for s, e in rec.hip_in_pelvis.items()},
         "valid_frames": int(np.sum(np.all(np.isfinite(rec.angle_table()), axis=1))), "frames": int(tr.n_frames),
     }
+    if rec.weights:
+        # blend: the foot-to-hip chain's per-frame weight per segment (median and 10-90 % range)
+        report["chain_weights_foot_to_hip"] = {
+            k: {"median": float(np.nanmedian(w)), "p10": float(np.nanpercentile(w, 10)), "p90": float(np.nanpercentile(w, 90))}
+            for k, w in rec.weights.items() if np.isfinite(w).any()}
+        report["chain_residual_mm_median"] = {
+            c: {k: float(np.nanmedian(r) * 1e3) for k, r in res.items() if np.isfinite(r).any()}
+            for c, res in rec.residuals.items()}
     with staged_dir(out) as stage:
         names = tuple(CENTRE_MARKERS[k] for k in CENTRE_MARKERS)
         pos = np.stack([rec.centres[k] for k in CENTRE_MARKERS], axis=1)
@@ -154,7 +165,7 @@ def register(app: typer.Typer) -> None:
     @app.command("markers")
     def markers_cmd(
         trial: Path = typer.Argument(..., help="Marker trial (.c3d in mm, or .trc)."),
-        method: str = typer.Option(..., "--method", help="pig (Plug-in-Gait, hip first) or foot-to-hip (the seed's model)."),
+        method: str = typer.Option(..., "--method", help="pig (Plug-in-Gait, hip first), foot-to-hip (the seed's model) or blend (both, per-frame Gaussian weights; needs --static)."),
         out: Path = typer.Option(..., "--out", help="Output folder: centres.trc, angles.mot, angles.png, report.json."),
         subject: Optional[Path] = typer.Option(None, "--subject", help="Subject measurements (.vsk or .json, SI)."),
         static: Optional[Path] = typer.Option(None, "--static", help="Static trial: foot offsets, foot-to-hip calibration, leg-length check."),
