@@ -119,7 +119,8 @@ class SideParameters:
     ankle : (3,) ankle centre; ankle_axis : (3,)
     subtalar : (3,) point on the subtalar axis; subtalar_axis : (3,) (anterior-pointing after orientation)
     mtp : (3,) point on the metatarsophalangeal axis; mtp_axis : (3,)
-    knee_law : CorrelativeLaw of this side's knee (default: `default_knee_law`)
+    knee_law : CorrelativeLaw of this side's knee (default: `default_knee_law`); its constant term is the
+        knee translation at the standing pose (m; zero when the fused knee centre is the standing one)
     """
 
     hip: np.ndarray
@@ -281,8 +282,13 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         # are the anatomical ones (flexion and varus between the femoral and tibial mechanical axes)
         R_k = _frame_yz(k_left, H - K)
         knee_frames[s] = R_k
+        laws[s] = sp.knee_law or default_knee_law(s)
+        # the law's standing translation (its constant term; e.g. a fused intercept) moves the tibia's joint point
+        # from the femur's, so that the tibia stays at its static pose in the standing pose
+        t_st = np.asarray(laws[s].coefficients, float)[:, -1]
+        K_tib = K + R_k @ np.array([t_st[0], -sg * t_st[2], t_st[1]])
         joints.append(CustomJoint(
-            f"knee_{s}", f"femur_{s}", f"tibia_{s}", tuple(kc + kt), offset(f"femur_{s}", K, R_k), offset(f"tibia_{s}", K, R_t),
+            f"knee_{s}", f"femur_{s}", f"tibia_{s}", tuple(kc + kt), offset(f"femur_{s}", K, R_k), offset(f"tibia_{s}", K_tib, R_t),
             rotations=(ax(_Y, kc[0]), ax(sg * _X, kc[1]), ax(sg * _Z, kc[2])),
             translations=(ax(_X, kt[0]), ax(_Z, kt[1]), ax(-sg * _Y, kt[2])), kind_name="custom"))
         joints.append(revolute(f"ankle_{s}", f"tibia_{s}", f"talus_{s}", f"ankle_angle_{s}", axis=R_t.T @ a_right,
@@ -292,7 +298,6 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
                                parent_offset=offset(f"talus_{s}", sub, R_t), child_offset=offset(f"calcn_{s}", sub, R_t)))
         joints.append(revolute(f"mtp_{s}", f"calcn_{s}", f"toes_{s}", f"mtp_angle_{s}", axis=R_t.T @ m_right,
                                parent_offset=offset(f"calcn_{s}", sp.mtp, R_t), child_offset=offset(f"toes_{s}", sp.mtp, R_t)))
-        laws[s] = sp.knee_law or default_knee_law(s)
     markers = []
     for n in sorted(p.markers):
         body = _body_of_marker(n, p.sides)

@@ -64,6 +64,32 @@ def test_static_pose_reproduces_markers_and_centres(phantom):
     assert np.allclose(pm.standing_q, m.default_q)
 
 
+def test_standing_translation_keeps_the_static_pose(phantom):
+    """A law whose constant term (the standing knee translation) is not zero: the standing pose still puts every
+    body where the static trial saw it, and the tibia's joint point is that far from the femur's."""
+    from dataclasses import replace
+
+    sk, trials = phantom
+    p = _true_parameters(sk, trials["static"])
+    law = default_knee_law("r")
+    C = np.array(law.coefficients, float)
+    C[:, -1] = [0.002, -0.001, 0.0015]                       # m: anterior, proximal, lateral
+    p = replace(p, sides={**p.sides, "r": replace(p.sides["r"], knee_law=replace(law, coefficients=C))})
+    pm = build_personal_model(p)
+    m = pm.model
+    x = marker_positions(m, pm.standing_q[None])[0]
+    for i, n in enumerate(m.marker_names):
+        np.testing.assert_allclose(x[i], p.markers[n], atol=1e-9)
+    ix = [m.coordinate_index(n) for n in ("knee_tx_r", "knee_ty_r", "knee_tz_r")]
+    np.testing.assert_allclose(pm.standing_q[ix], [0.002, -0.001, 0.0015], atol=1e-12)
+    j = m.joint("knee_r")
+    st = forward_kinematics(m, pm.standing_q[None])
+    bt, bf = m.body_index("tibia_r"), m.body_index("femur_r")
+    tib_pt = st.positions[0, bt] + st.rotations[0, bt] @ j.child_offset.translation
+    fem_pt = st.positions[0, bf] + st.rotations[0, bf] @ j.parent_offset.translation
+    assert np.linalg.norm(tib_pt - fem_pt) == pytest.approx(np.linalg.norm([0.002, 0.001, 0.0015]), abs=1e-9)
+
+
 def test_knee_flexes_about_the_given_axis(phantom):
     sk, trials = phantom
     p = _true_parameters(sk, trials["static"])
