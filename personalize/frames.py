@@ -12,8 +12,9 @@ knee          point of the condyle cylinder axis between   cylinder through the 
               projected on it)                             / Y towards the hip centre
 ankle         talar dome cylinder centre (mid-dome)        talar dome axis, to the right
                                                            / Y towards the knee centre
-subtalar      subtalar-axis point closest to the ankle     subtalar axis, anterior
-                                                           / Y = foot superior
+subtalar      posterior talocalcaneal facet centre (on     subtalar axis, anterior
+              the axis; else the axis point closest to     / Y = foot superior
+              the ankle)
 mtp           midpoint of the 1st and 5th metatarsal       1st -> 5th head line, to the right
               head centres                                 / Y = foot superior
 ============  ===========================================  =================================
@@ -174,10 +175,15 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 dropped[j] = "subtalar axis not detected"
             else:
                 ax = tal.axes["subtalar_axis"]
-                ac = tal.landmarks["talar_dome_centre"]
-                o = closest_on_line(ax.point, ax.direction, ac.position)
+                # the posterior facet is the subtalar joint's main articulation; its sphere centre lies on the
+                # axis (which runs through it), as the hand-built ICL-MRI model places the joint
+                pf = tal.landmarks.get("posterior_facet_centre")
+                if pf is not None:
+                    o, cov = closest_on_line(ax.point, ax.direction, pf.position), pf.cov
+                else:
+                    ac = tal.landmarks["talar_dome_centre"]
+                    o, cov = closest_on_line(ax.point, ax.direction, ac.position), ac.cov
                 up = cal.frames["foot"]["rotation"][:, 1] if "foot" in cal.frames else tal.frames["anatomical"]["rotation"][:, 1]
-                cov = tal.landmarks.get("posterior_facet_centre", ac).cov
                 joints[j] = Joint(j, o, cov.copy(), frame_zy(ax.direction, up), ax.sd_deg, _flags(tal, cal))
         # ---- mtp
         j = f"mtp_{s}"

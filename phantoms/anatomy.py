@@ -662,11 +662,6 @@ def _frame_yz(y, z_hint) -> np.ndarray:
     return np.column_stack([np.cross(Yv, Zv), Yv, Zv])
 
 
-def _closest_on_line(point, direction, q):
-    d = _unit(direction)
-    return point + np.dot(q - point, d) * d
-
-
 # --------------------------------------------------------------------------- phantom
 class Phantom:
     """A constructed synthetic subject (immutable).
@@ -872,7 +867,7 @@ class Phantom:
             joints[f"ankle_{side}"] = (ac, _frame_zy(ta["axes"]["ankle_axis"][1], kc_t - t["axes"]["ankle_axis"][0]))
             sp, sd = ta["axes"]["subtalar_axis"]
             talus_up = self._bones[f"talus_{side}"].body_from_local[:3, 1]   # talus (ankle-frame) superior axis
-            joints[f"subtalar_{side}"] = (_closest_on_line(sp, sd, ac), _frame_zy(sd, talus_up))
+            joints[f"subtalar_{side}"] = (sp, _frame_zy(sd, talus_up))      # the posterior facet centre
             mp, md = to["axes"]["mtp_axis"]
             joints[f"mtp_{side}"] = (mp, _frame_zy(md, n))
         return {"bones": out, "joints": joints}

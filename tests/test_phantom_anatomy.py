@@ -102,11 +102,11 @@ def test_joints_are_congruent_and_defined(truth):
         np.testing.assert_allclose(J[f"knee_{s}"]["origin"], mid, atol=1e-12)
         np.testing.assert_allclose(J[f"hip_{s}"]["origin"], _lm(truth, f"femur_{s}", "femoral_head_centre"), atol=1e-12)
         np.testing.assert_allclose(J[f"ankle_{s}"]["origin"], _lm(truth, f"talus_{s}", "talar_dome_centre"), atol=1e-12)
-        # subtalar origin: point of the subtalar axis closest to the dome centre
+        # subtalar origin: the posterior talocalcaneal facet centre, on the subtalar axis
         sp, sd = _axis(truth, f"talus_{s}", "subtalar_axis")
         o = np.array(J[f"subtalar_{s}"]["origin"])
         assert np.linalg.norm(np.cross(o - sp, sd)) < 1e-12
-        assert abs((_lm(truth, f"talus_{s}", "talar_dome_centre") - o) @ sd) < 1e-12
+        np.testing.assert_allclose(o, _lm(truth, f"talus_{s}", "posterior_facet_centre"), atol=1e-12)
         for j, axis in (("knee", kd_f), ("ankle", ad_t), ("subtalar", sd), ("mtp", _axis(truth, f"toes_{s}", "mtp_axis")[1])):
             R = np.array(J[f"{j}_{s}"]["rotation"])
             np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
@@ -344,9 +344,10 @@ def test_subtalar_axis_is_carried_by_the_talar_surfaces(ph, truth, side):
     assert np.all((fp - fc) @ up > 0.8 * rf)
     gap = ph.sdf(f"calcn_{side}", fp)
     assert np.all(gap > 0.0005) and np.all(gap < 0.003), gap
-    # the joint origin is the axis point closest to the dome centre
+    # the joint origin is the posterior facet centre (on the axis)
     o = np.array(J[f"subtalar_{side}"]["origin"])
-    assert abs((_lm(truth, b, "talar_dome_centre") - o) @ d) < 1e-12
+    np.testing.assert_allclose(o, _lm(truth, b, "posterior_facet_centre"), atol=1e-12)
+    assert np.linalg.norm(np.cross(o - p, d)) < 1e-12
 
 
 def test_talus_is_one_solid_with_cartilage_gaps(ph):
