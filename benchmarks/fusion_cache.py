@@ -11,7 +11,9 @@ no model, no IK) and stores per subject, in the static-trial lab frame (m, m²):
 * per side: the MRI hip (x, C), the SCoRE hip (x, raw C from its residuals, C with
   the pipeline's floor), the cluster poses of the functional trial (npz) so other
   SCoRE covariances can be computed offline, the knee axes (MRI, motion) and the truth;
-* the pelvis anatomical frame of the static markers.
+* the pelvis anatomical frame of the static markers;
+* the soft tissue used under the pelvic markers (measured in the body/skin label or prior,
+  `personalize.skin`) and the MRI hip covariance scale in force.
 
 Usage::
 
@@ -59,7 +61,8 @@ def cache_subject(d: Path, out_json: Path, say=print) -> dict:
                    "names": list(reg.names), "chi2": reg.chi2, "dof": reg.dof, "inflation": reg.inflation},
            "seconds": {"surfaces": t1 - t0, "landmarks": t2 - t1, "estimates": t3 - t2}, "sides": {},
            # the pipeline constants in force: the cached covariances / sds hold them
-           "constants": {k: float(getattr(pl, k, 1.0)) for k in ("MRI_HIP_COV_SCALE", "MRI_KNEE_AXIS_SD_SCALE",
+           "skin": {k: v.summary() for k, v in est.skin.items()}, "mri_hip_scale": est.mri_hip_scale,
+           "constants": {k: float(getattr(pl, k, 1.0)) for k in ("MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_KNEE_AXIS_SD_SCALE",
                                                                   "MOTION_KNEE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE",
                                                                   "MOTION_ANKLE_AXIS_SD_DEG")}}
     fun = inputs.trials[inputs.functional]

@@ -6,6 +6,11 @@ the first ``--train`` subjects calibrate, the others are held out.
 
 Calibration (written into `personalize.pipeline` as documented constants):
 
+* which MRI scale is calibrated depends on the cache: phantoms whose label volume carries
+  the body/skin label (tissue under the four pelvic markers measured, `personalize.skin`)
+  calibrate `MRI_HIP_COV_SCALE_MEASURED`, bone-only ones `MRI_HIP_COV_SCALE`
+  (``mri_cov_scale_constant`` in the output says which);
+
 * MRI: the hip centre's error is the pelvis registration's (the femoral head is
   found to ~0.1 mm); its propagated covariance C_reg keeps its structure (and
   the cross-covariance of the two hips, one shared registration) and is scaled
@@ -60,7 +65,10 @@ def load(cache: Path) -> list[dict]:
             continue
         A = np.array(r["pelvis_axes"])
         R, cov, c = np.array(r["reg"]["R"]), np.array(r["reg"]["cov"]), np.array(r["reg"]["centre"])
-        sub = {"subject": r["subject"], "A": A, "sides": {}}
+        sub = {"subject": r["subject"], "A": A, "sides": {},
+               # soft tissue under the pelvic markers measured in the MRI body label at all four sites?
+               "skin_measured": bool(r.get("skin")) and all(v.get("source") == "MRI" for v in r["skin"].values())
+               and len(r["skin"]) == 4}
         J, own = {}, {}
         for s, v in r["sides"].items():
             x = np.array(v["mri"][0])
@@ -270,7 +278,14 @@ def main(argv=None) -> dict:
     if a.test_cache is not None:
         test = load(a.test_cache)
     cal = calibrate(train)
-    res = {"units": "mm, mm^2", "cache": str(a.cache), "test_cache": str(a.test_cache or a.cache), "train_subjects": [s["subject"] for s in train],
+    measured = [s["skin_measured"] for s in train]
+    if all(measured):
+        constant = "MRI_HIP_COV_SCALE_MEASURED"
+    elif not any(measured):
+        constant = "MRI_HIP_COV_SCALE"
+    else:
+        constant = "mixed training set (measured and prior soft tissue): calibrate each case on its own cache"
+    res = {"mri_cov_scale_constant": constant, "train_subjects_with_measured_skin": int(sum(measured)),"units": "mm, mm^2", "cache": str(a.cache), "test_cache": str(a.test_cache or a.cache), "train_subjects": [s["subject"] for s in train],
            "test_subjects": [s["subject"] for s in test],
            "calibration": {"mri_cov_scale": cal["mri_cov_scale"], "mri_cov_scale_by_median": cal["mri_cov_scale_by_median"],
                            "motion_sta_sd_mm": (1e3 * np.sqrt(np.diag(cal["motion_sta_cov"]))).tolist(),
@@ -317,8 +332,8 @@ def main(argv=None) -> dict:
 
     res["cache_constants"] = cache_constants(a.cache)
     res["pipeline_constants_claimed"] = {k: float(getattr(pl, k)) for k in (
-        "MRI_HIP_COV_SCALE", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE",
-        "MOTION_ANKLE_AXIS_SD_DEG")}
+        "MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG",
+        "MRI_ANKLE_AXIS_SD_SCALE", "MOTION_ANKLE_AXIS_SD_DEG")}
     pc = res["pipeline_constants_claimed"]
     res["knee_axis"] = knee_axes(knee_axis_legs(a.cache, names), test_knee, pc["MRI_KNEE_AXIS_SD_SCALE"],
                                  pc["MOTION_KNEE_AXIS_SD_DEG"])

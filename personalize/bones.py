@@ -26,6 +26,20 @@ ALIASES: dict[str, str] = {
 DEFAULT_LABEL_MAP: dict[str, int] = {name: i + 1 for i, name in enumerate(BONE_NAMES)}
 
 
+#: name of the non-bone label of a label volume: the whole soft-tissue envelope (everything inside the skin
+#: that is not bone), used to measure the skin-to-bone distance under the markers (`personalize.skin`)
+TISSUE_LABEL_NAME = "skin"
+#: accepted label-map keys for it
+TISSUE_ALIASES: tuple[str, ...] = ("skin", "body", "soft_tissue")
+#: label the phantoms give it (after the bones)
+DEFAULT_TISSUE_LABEL = len(BONE_NAMES) + 1
+
+
+def is_tissue_name(name: str) -> bool:
+    """True for a label-map key naming the body/skin envelope (``skin``, ``body``, ``soft_tissue``)."""
+    return name.strip().lower().replace("-", "_").replace(" ", "_") in TISSUE_ALIASES
+
+
 def canonical_bone_name(name: str) -> str | None:
     """Canonical bone name for a file stem or label-map key, or None if unknown."""
     key = name.strip().lower().replace("-", "_").replace(" ", "_")

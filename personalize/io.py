@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .bones import DEFAULT_LABEL_MAP, canonical_bone_name
+from .bones import DEFAULT_LABEL_MAP, canonical_bone_name, is_tissue_name
 from .errors import InputError
 
 __all__ = [
@@ -31,6 +31,7 @@ __all__ = [
     "MESH_SUFFIXES",
     "read_label_volume",
     "read_label_map",
+    "read_tissue_label",
     "read_mesh_folder",
     "read_mesh_folder_detailed",
     "check_and_repair_mesh",
@@ -69,20 +70,8 @@ def is_label_volume_path(path: str | os.PathLike) -> bool:
 
 
 # --------------------------------------------------------------------------- label maps
-def read_label_map(source: str | os.PathLike | dict | None) -> tuple[dict[str, int], str]:
-    """Bone -> integer label map from a dict, a JSON file, or the default.
-
-    The JSON may map bone names to labels (``{"femur_r": 2}``) or labels to bone
-    names (``{"2": "femur_r"}``); aliases such as ``pelvis_no_sacrum`` are
-    accepted.  Returns the canonical map and a description of its origin.
-
-    Raises
-    ------
-    InputError
-        Unreadable JSON, unknown bone names, non-integer or duplicate labels.
-    """
-    if source is None:
-        return dict(DEFAULT_LABEL_MAP), "default"
+def _raw_label_map(source) -> tuple[dict, str]:
+    """The label map's raw JSON object (or the given dict) and a description of its origin."""
     origin = "given"
     if not isinstance(source, dict):
         path = Path(source)
@@ -99,26 +88,72 @@ def read_label_map(source: str | os.PathLike | dict | None) -> tuple[dict[str, i
             raise InputError(path, "label map must be a JSON object of bone name -> integer label")
     else:
         raw = source
-    out: dict[str, int] = {}
+    return raw, origin
+
+
+def _entries(raw: dict, origin: str):
+    """(name, integer label) pairs of a raw label map, checked: positive integers."""
     for key, value in raw.items():
         name, label = (value, key) if isinstance(value, str) else (key, value)
-        bone = canonical_bone_name(str(name))
-        if bone is None:
-            raise InputError(origin, f"unknown bone name {name!r} in the label map")
         try:
             lab = int(label)
         except (TypeError, ValueError):
             raise InputError(origin, f"label of {name!r} is not an integer ({label!r})") from None
         if isinstance(label, float) and label != lab or lab <= 0:
             raise InputError(origin, f"label of {name!r} must be a positive integer ({label!r})")
+        yield str(name), lab
+
+
+def read_label_map(source: str | os.PathLike | dict | None) -> tuple[dict[str, int], str]:
+    """Bone -> integer label map from a dict, a JSON file, or the default.
+
+    The JSON may map bone names to labels (``{"femur_r": 2}``) or labels to bone
+    names (``{"2": "femur_r"}``); aliases such as ``pelvis_no_sacrum`` are
+    accepted.  The optional body/skin label (``skin``, ``body`` or
+    ``soft_tissue``; `read_tissue_label`) is not a bone and is left out.
+    Returns the canonical map and a description of its origin.
+
+    Raises
+    ------
+    InputError
+        Unreadable JSON, unknown bone names, non-integer or duplicate labels.
+    """
+    if source is None:
+        return dict(DEFAULT_LABEL_MAP), "default"
+    raw, origin = _raw_label_map(source)
+    out: dict[str, int] = {}
+    tissue: list[int] = []
+    for name, lab in _entries(raw, origin):
+        if is_tissue_name(name):
+            tissue.append(lab)
+            continue
+        bone = canonical_bone_name(name)
+        if bone is None:
+            raise InputError(origin, f"unknown bone name {name!r} in the label map")
         if bone in out:
             raise InputError(origin, f"bone {bone!r} appears twice in the label map")
         if lab in out.values():
             raise InputError(origin, f"label {lab} is used for two bones in the label map")
         out[bone] = lab
+    if len(tissue) > 1:
+        raise InputError(origin, f"the body/skin label appears {len(tissue)} times in the label map (skin, body, soft_tissue)")
+    if tissue and tissue[0] in out.values():
+        raise InputError(origin, f"label {tissue[0]} is used for the skin and for a bone in the label map")
     if not out:
         raise InputError(origin, "label map is empty")
     return out, origin
+
+
+def read_tissue_label(source: str | os.PathLike | dict | None) -> int | None:
+    """Integer label of the body/skin envelope in a label map (key ``skin``, ``body`` or ``soft_tissue``), or None.
+
+    The default label map has none: a volume's soft tissue is only used when the label map names it.
+    """
+    if source is None:
+        return None
+    raw, origin = _raw_label_map(source)
+    labs = [lab for name, lab in _entries(raw, origin) if is_tissue_name(name)]
+    return labs[0] if labs else None
 
 
 # --------------------------------------------------------------------------- volumes
@@ -143,6 +178,9 @@ class LabelVolume:
         The file's world frame ("RAS" for NIfTI, the NRRD ``space``).
     label_map_source : str
         Where the label map came from ("default", a JSON path, ...).
+    tissue_label : int or None
+        Label of the body/skin envelope (soft tissue inside the skin that is not
+        bone; bones are labelled over it), None when the volume has none.
     """
 
     labels: np.ndarray
@@ -152,6 +190,7 @@ class LabelVolume:
     unit: str = "mm"
     frame: str = "RAS"
     label_map_source: str = "default"
+    tissue_label: int | None = None
 
     @property
     def spacing_m(self) -> np.ndarray:
@@ -266,6 +305,7 @@ def read_label_volume(path: str | os.PathLike, label_map: str | os.PathLike | di
     if label_map is None and (path.parent / "label_map.json").is_file():
         label_map = path.parent / "label_map.json"
     lmap, lmap_origin = read_label_map(label_map)
+    tissue = read_tissue_label(label_map)
     if path.name.lower().endswith((".nrrd", ".nhdr")):
         data, affine, unit, frame = _read_nrrd(path)
     else:
@@ -278,7 +318,8 @@ def read_label_volume(path: str | os.PathLike, label_map: str | os.PathLike | di
     if not labels.any():
         raise InputError(path, "label volume is empty (no non-zero voxel)")
     return LabelVolume(labels=labels, affine_m=affine_m, label_map=lmap, source=str(path),
-                       unit=unit, frame=frame, label_map_source=lmap_origin)
+                       unit=unit, frame=frame, label_map_source=lmap_origin,
+                       tissue_label=tissue if tissue is not None and np.any(labels == tissue) else None)
 
 
 # --------------------------------------------------------------------------- meshes

@@ -54,7 +54,13 @@ TRAINING phantom subjects (`benchmarks/fusion_cache.py` then
   covariance (per-site soft-tissue prior sd, `kinematics.soft_tissue`: ASIS
   9.7 ± 7.0 mm, PSIS 19.6 ± 10.9 mm; marker placement sd; landmark covariances)
   keeps its structure and its cross-covariance between the two hips (one
-  shared registration) and is scaled by `MRI_HIP_COV_SCALE`;
+  shared registration) and is scaled by `MRI_HIP_COV_SCALE`.  When the label
+  volume has a body/skin label, the tissue under RASI, LASI, RPSI and LPSI is
+  MEASURED in it (`personalize.skin`: skin-to-bone distance along the bone's
+  outward normal, sd from the voxel size, the landmark covariance, the normal's
+  uncertainty and an assumed 2 mm supine-vs-standing term) and replaces the
+  prior site by site (``summary.json`` ``skin_thickness``: source "MRI" or
+  "prior"); with all four measured the scale is `MRI_HIP_COV_SCALE_MEASURED`;
 * motion: SCoRE's residual covariance ignores the soft-tissue artefact,
   which is systematic (its Mahalanobis distances were ~3000 instead of 3);
   the artefact term `MOTION_HIP_STA_COV` (pelvis axes: anterior, medial, up;
@@ -85,7 +91,7 @@ from kinematics.errors import FitError, InputError
 from kinematics.markers import MarkerTrial
 
 __all__ = ["run_subject", "SubjectInputs", "find_inputs", "estimate_joints", "JointEstimates", "fit_knee_laws",
-           "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES", "write_phantom_subject", "SHORT_TRIALS", "MRI_HIP_COV_SCALE", "MOTION_HIP_STA_COV", "fuse_hips", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE", "PIG_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD"]
+           "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES", "write_phantom_subject", "SHORT_TRIALS", "MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MOTION_HIP_STA_COV", "fuse_hips", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE", "PIG_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD"]
 
 #: Hip error models, calibrated on 24 TRAINING phantom subjects (48 legs; `personalize.validate.draw_subjects(24,
 #: seed=1000)`, never a validation seed; benchmarks/results/fusion_calibration*.json; a 12/12 split of the same
@@ -96,6 +102,13 @@ __all__ = ["run_subject", "SubjectInputs", "find_inputs", "estimate_joints", "Jo
 #: (median d² gives 0.23: the log-normal tissue makes the errors heavy-tailed).  The registration model also
 #: assumes a 3 mm palpation sd; the phantoms' placement is exact (use 1.0 where palpation errors are real).
 MRI_HIP_COV_SCALE = 0.43
+#: the same scale when the tissue under all four pelvic markers was measured in the MRI's body label
+#: (`personalize.skin`): mean d² = 3 on 24 TRAINING phantom subjects (48 legs, `draw_subjects(24, seed=1000)`)
+#: whose label volumes carry the skin envelope (benchmarks/results/fusion_calibration_skin.json: a 12/12 split
+#: gives 0.084 and held-out mean d² 3.7, 75 % of legs below the χ²₃ 90 % quantile; MRI hip median 1.7 mm).
+#: The measured sd holds the assumed 2 mm posture term and the 3 mm palpation sd, both absent on the
+#: phantoms (exact placement, no posture change): use 1.0 on real data until calibrated there.
+MRI_HIP_COV_SCALE_MEASURED = 0.094
 #: soft-tissue-artefact covariance of a SCoRE hip centre (m²) in the pelvis axes (anterior, medial, up; left legs
 #: mirrored): the second moment about zero of the training legs' SCoRE errors (sds 4.9, 7.2, 10.4 mm)
 MOTION_HIP_STA_COV = np.array([[23.7, 1.5, -21.4], [1.5, 51.6, 15.0], [-21.4, 15.0, 108.3]]) * 1e-6
@@ -356,6 +369,8 @@ class JointEstimates:
     sources: dict = field(default_factory=dict)
     points: dict = field(default_factory=dict)
     hip_joint: object = None
+    skin: dict = field(default_factory=dict)      # marker -> personalize.skin.SkinThickness (pelvis)
+    mri_hip_scale: float = MRI_HIP_COV_SCALE       # the MRI hip covariance scale in force
 
 
 def _aliased_static(static: MarkerTrial) -> MarkerTrial:
@@ -460,9 +475,29 @@ def _angle_deg(u, v) -> float:
     return float(np.degrees(np.arccos(min(1.0, c))))
 
 
+def pelvis_skin(inputs: SubjectInputs, surfaces: dict, lm_json: dict) -> dict:
+    """Tissue under the pelvic markers (`personalize.skin.measure_pelvis_skin`) when the label volume names a
+    body/skin label; {} for bone-only volumes and mesh folders (the population prior is then used)."""
+    from .io import is_label_volume_path, read_label_volume, read_tissue_label
+    from .skin import measure_pelvis_skin
+
+    src = inputs.bones
+    if not (Path(src).is_file() and is_label_volume_path(src)) or "pelvis" not in surfaces:
+        return {}
+    lmap = inputs.label_map if inputs.label_map is not None else None
+    if read_tissue_label(lmap) is None:
+        return {}
+    vol = read_label_volume(src, lmap)
+    return measure_pelvis_skin(vol, lm_json, surfaces["pelvis"].mesh)
+
+
 def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints_json: dict, say,
-                    dropped: dict | None = None) -> JointEstimates:
-    """MRI, motion and fused joint parameters per side (static lab frame); see the module docstring."""
+                    dropped: dict | None = None, skin: dict | None = None) -> JointEstimates:
+    """MRI, motion and fused joint parameters per side (static lab frame); see the module docstring.
+
+    `skin`: {marker: `personalize.skin.SkinThickness`}; default measured by `pelvis_skin` (empty
+    without a body label).
+    """
     from kinematics.pig import pelvis_frame
 
     from .fusion import fuse_axis, fuse_gaussian
@@ -474,9 +509,20 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
     sac = 0.5 * (static_pos["RPSI"][0] + static_pos["LPSI"][0])
     pf = pelvis_frame(static_pos["RASI"][0][None], static_pos["LASI"][0][None], sac[None])
     out.pelvis = (pf.origin[0], pf.axes[0])
+    if skin is None:
+        say("measuring the soft tissue over the pelvic landmarks")
+        skin = pelvis_skin(inputs, surfaces, lm_json)
+    out.skin = dict(skin)
+    measured = {k: v for k, v in skin.items() if v.source == "MRI"}
+    for v in skin.values():
+        if v.note and v.source != "MRI" and "no body/skin label" not in v.note:
+            out.notes.append(f"soft tissue under {v.marker}: {v.note}")
+    out.mri_hip_scale = (MRI_HIP_COV_SCALE_MEASURED if all(m in measured for m in _PELVIS) else MRI_HIP_COV_SCALE)
     say("registering the pelvis")
     regs = register_segments(lm_json, st, sides=inputs.sides, segments=("pelvis",),
-                             surfaces={k: v.mesh for k, v in surfaces.items()})
+                             surfaces={k: v.mesh for k, v in surfaces.items()},
+                             skin_thickness={k: v.thickness for k, v in measured.items()},
+                             skin_sd={k: v.sd for k, v in measured.items()})
     if "pelvis" not in regs:
         raise InputError(inputs.static.source, "the pelvis could not be registered (needs RASI, LASI, RPSI, LPSI in MRI and markers)")
     out.registrations["pelvis"] = regs["pelvis"]
@@ -508,7 +554,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
             out.notes.append(f"hip {S}: no functional hip centre ({exc}); Plug-in-Gait regression used")
         hip_motion[s] = (x, C)
     # both hips at once: their MRI estimates share the pelvis registration error
-    hip_mri, hip_fused, hip_joint = fuse_hips(regs["pelvis"], hips_scanner, hip_motion)
+    hip_mri, hip_fused, hip_joint = fuse_hips(regs["pelvis"], hips_scanner, hip_motion, mri_scale=out.mri_hip_scale)
     out.hip_joint = hip_joint
     for s in inputs.sides:
         S = s.upper()
@@ -522,7 +568,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
         a_pig = (np.median(rec_static.centres[f"ankle_{s}"], axis=0), PIG_CENTRE_SD**2 * np.eye(3))
         reg_f = _register_with_centre(f"femur_{s}", bones, [f"femur_{s}"], (f"{S}KNE", f"{S}MFC", f"{S}TRO"), static_pos,
                                       surfaces, (j[f"hip_{s}"]["origin"], j[f"hip_{s}"]["origin_cov"]),
-                                      (hf.mean, hf.cov / MRI_HIP_COV_SCALE),
+                                      (hf.mean, hf.cov / out.mri_hip_scale),
                                       axis=_joint_axis(j[f"knee_{s}"]),
                                       fallback=[("pig_knee_centre", j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"], *k_pig)])
         out.registrations[f"femur_{s}"] = reg_f
@@ -902,8 +948,16 @@ def _report(path: Path, summary: dict, est: JointEstimates, ik: dict, ls, surfac
                             "registration error, so each functional centre also corrects the other hip. Weights (share of "
                             "the 6-vector's information): " + ", ".join(f"{n} {w:.2f}" for n, w in zip(hj.names, hj.shares))
                          + f"; agreement χ² = {hj.chi2:.1f} ({hj.dof} dof, p = {hj.p_value:.2g}). MRI hip covariance = "
-                           f"registration covariance x {MRI_HIP_COV_SCALE:g}; SCoRE covariance includes the soft-tissue-"
+                           f"registration covariance x {est.mri_hip_scale:g}; SCoRE covariance includes the soft-tissue-"
                            "artefact term (both calibrated on training phantoms).")
+    if est.skin:
+        srows = [[k, round(v.thickness * 1e3, 1), round(v.sd * 1e3, 1), v.source, v.note or "-"] for k, v in est.skin.items()]
+        est_items.append("Soft tissue under the pelvic markers (skin-to-bone distance along the bone's outward normal): "
+                         "measured in the MRI's body/skin label where plausible, else the population prior "
+                         "(Mantovani et al. 2016). The measured sd includes an assumed 2 mm for supine scan vs "
+                         "standing with a taped marker.")
+        est_items.append(Table(["marker", "thickness (mm)", "sd (mm)", "source", "note"], srows,
+                               caption="Soft tissue used by the pelvis registration"))
     sections.append(Section("Per-joint estimates: MRI, motion and fused", est_items))
     if "errors" in summary:
         er = [[k, *(round(v[s], 2) for s in ("mri", "motion", "fused"))] for k, v in summary["errors"].items()]
@@ -1075,6 +1129,14 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
             "weights": dict(zip(hj.names, hj.shares.tolist())), "chi2": hj.chi2, "dof": hj.dof, "p_value": hj.p_value,
             "method": "generalised least squares of both MRI hips (registration cross-covariance) and each side's motion centre"}
     summary["estimates"] = est_json
+    if est.skin:
+        summary["skin_thickness"] = {k: v.summary() for k, v in est.skin.items()}
+        true_skin = ((inputs.truth or {}).get("image") or {}).get("skin", {}).get("sites", {})
+        if true_skin:
+            # phantoms: used minus drawn tissue (mm), per marker
+            summary["skin_thickness_error_mm"] = {k: 1e3 * (v.thickness - true_skin[k]["thickness"])
+                                                  for k, v in est.skin.items() if k in true_skin}
+    summary["mri_hip_cov_scale"] = est.mri_hip_scale
     summary["registration"] = {k: {"rms_mm": r.rms * 1e3, "used": list(r.names), "rejected": list(r.rejected)}
                                for k, r in est.registrations.items()}
     with staged_dir(out) as stage:
@@ -1128,12 +1190,14 @@ SHORT_TRIALS = dict(gait_trials=1, gait_cycles=1.0, crouch_angles=(0,), crouch_d
 
 
 def write_phantom_subject(out: str | Path, seed: int = 0, *, voxel_mm: float = 2.0, short: bool = True,
-                          bones=None, progress: Callable[[str], None] | None = None) -> Path:
+                          bones=None, progress: Callable[[str], None] | None = None, skin: bool = True) -> Path:
     """Write a phantom SUBJECT_DIR (labels.nii.gz, label_map.json, C3D trials, subject.json, truth.json, truth/).
 
     The same content as ``personalize phantom`` plus its motion trials, without the
     exact reference meshes (the pipeline does not read them).  `bones` restricts
-    the labelled bones (e.g. one side only).  Staged: published only when complete.
+    the labelled bones (e.g. one side only); ``skin=False`` leaves out the body/skin label
+    (a bone-only volume: the pelvis registration then uses the soft-tissue prior).  Staged:
+    published only when complete.
     """
     from phantoms import make_phantom
     from phantoms.subject import write_subject
@@ -1142,5 +1206,5 @@ def write_phantom_subject(out: str | Path, seed: int = 0, *, voxel_mm: float = 2
     say(f"phantom {seed}: label volume ({voxel_mm:g} mm) and motion trials")
     with staged_dir(out) as stage:
         write_subject(stage, make_phantom(seed=seed), voxel=(voxel_mm * 1e-3,) * 3, seed=seed, bones=bones,
-                      trials=SHORT_TRIALS if short else None, meshes=False, progress=say)
+                      trials=SHORT_TRIALS if short else None, meshes=False, progress=say, skin=skin)
     return Path(out)

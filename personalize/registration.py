@@ -645,7 +645,9 @@ def register_segments(landmarks: dict, static_trial, *, sides=("r", "l"), segmen
         segment that has fewer than 3 correspondences (skipped ones are
         listed with the reason in ``result.skipped``)
     skin_thickness, skin_sd : m, one value or {marker name: m}; default (and names missing from a dict):
-        the per-site population prior `skin_prior` (soft tissue along the bone's outward normal)
+        the per-site population prior `skin_prior` (soft tissue along the bone's outward normal).
+        The pipeline passes the tissue MEASURED in the MRI's body/skin label where it has one
+        (`personalize.skin.measure_pelvis_skin`) and lets the prior fill the rest
     placement_sd : m, marker placement sd added to the static scatter
 
     Returns

@@ -19,6 +19,25 @@ Noise (all seeded): the boundary is displaced by a smooth random field
 (``d -> d + a f(x)``, ``a = level * mean(h)``, wavelengths 8-30 mm), small holes
 (balls of 1-2 voxels removed just inside the surface) and spurious islands
 (balls of 1-2 voxels added 1-5 voxels outside the surface).
+
+Skin (body) label
+-----------------
+With ``skin=True`` (and the pelvis rasterised) the volume also carries the
+soft-tissue envelope of the pelvis region, label ``skin`` in the label map
+(everything inside the skin that is not bone; bones are labelled over it).
+Model: the body is ``{x : d_pelvis(x) <= T(x)}``, an offset of the pelvis by
+a smooth thickness field ``T(x) = Σ w_k v_k / Σ w_k``, ``w_k = 1 / (|x - s_k|² + ε²)``
+(inverse-distance weighting, flat at its nodes) with nodes ``s_k = p_k + t_k n_k``
+the skin points over the four pelvic marker sites (landmark ``p_k``, outward
+normal ``n_k`` and the subject's drawn thickness ``t_k``, exactly as
+`phantoms.skeleton.phantom_skeleton` places the markers).  The node values
+``v_k`` solve ``T(s_k) = d_pelvis(s_k)``, so the skin passes exactly through
+every marker's skin point (the first exit of the ray ``p_k + s n_k`` is at
+``s = t_k``: checked by the tests); between the sites the thickness is the
+interpolated node values.  A voxel is body when its centre is inside (no partial
+volume, no segmentation noise); enclosed cavities are filled.  The legs are
+not enveloped and the pelvic ring stays open: only the tissue over the pelvic
+marker sites is meant to be realistic.
 """
 from __future__ import annotations
 
@@ -31,7 +50,7 @@ import numpy as np
 
 from kinematics.atomic import atomic_path, write_text
 from kinematics.errors import InputError
-from personalize.bones import DEFAULT_LABEL_MAP
+from personalize.bones import DEFAULT_LABEL_MAP, DEFAULT_TISSUE_LABEL, TISSUE_LABEL_NAME
 
 from .anatomy import Phantom
 from .grid import sample_grid
@@ -100,10 +119,80 @@ def _stamp(mask_idx: np.ndarray, shape, radius: float) -> tuple[np.ndarray, ...]
     return pts[:, 0], pts[:, 1], pts[:, 2]
 
 
+# --------------------------------------------------------------------------- skin envelope
+class SkinField:
+    """The pelvis-region skin envelope: ``d_pelvis(x) - T(x) <= 0`` (see the module docstring).
+
+    Attributes
+    ----------
+    sites : dict name -> (landmark (3,), outward normal (3,), thickness t) scanner frame, m
+    nodes : (K, 3) skin points s_k = p_k + t_k n_k; values : (K,) solved node values v_k, m
+    """
+
+    EPS = 0.01  # m, IDW regulariser
+
+    def __init__(self, sites: dict, values: np.ndarray):
+        self.sites = sites
+        self.nodes = np.array([p + t * n for p, n, t in sites.values()])
+        self.values = np.asarray(values, float)
+
+    def thickness(self, x: np.ndarray) -> np.ndarray:
+        """T(x) (N,) m at scanner points x (N, 3)."""
+        d2 = np.sum((np.asarray(x, float)[:, None, :] - self.nodes[None]) ** 2, axis=2)
+        w = 1.0 / (d2 + self.EPS**2)
+        return (w @ self.values) / w.sum(axis=1)
+
+    def implicit(self, ph: Phantom, x: np.ndarray) -> np.ndarray:
+        """d_pelvis(x) - T(x): negative inside the body."""
+        return ph.sdf("pelvis", x) - self.thickness(x)
+
+    def crossing(self, ph: Phantom, name: str, s_max: float = 0.2) -> float:
+        """Distance s (m) at which the ray p + s n of site `name` first leaves the body (first root of the implicit)."""
+        from scipy.optimize import brentq
+
+        p, n, _ = self.sites[name]
+        s = np.arange(0.0, s_max, 2.5e-4)
+        g = self.implicit(ph, p + s[:, None] * n)
+        i = int(np.argmax(g > 0))                 # first sample outside: the FIRST exit
+        if g[i] <= 0:
+            return float("inf")
+        f = lambda x: float(self.implicit(ph, (p + x * n)[None])[0])  # noqa: E731
+        return float(brentq(f, s[i - 1], s[i], xtol=1e-8)) if i > 0 else 0.0
+
+    @classmethod
+    def of(cls, ph: Phantom, tissue_seed: int) -> "SkinField":
+        """The field of `ph` with the thickness draw of `tissue_seed`.
+
+        The node values solve T(s_k) = d_pelvis(s_k) for every k (a K x K linear system of the
+        IDW weights): the skin passes exactly through each marker's skin point s_k = p_k + t_k n_k.
+        """
+        from .skeleton import pelvis_skin_sites
+
+        sites = pelvis_skin_sites(ph, tissue_seed)
+        field_ = cls(sites, np.zeros(len(sites)))
+        d2 = np.sum((field_.nodes[:, None, :] - field_.nodes[None]) ** 2, axis=2)
+        w = 1.0 / (d2 + cls.EPS**2)
+        W = w / w.sum(axis=1, keepdims=True)
+        return cls(sites, np.linalg.solve(W, ph.sdf("pelvis", field_.nodes)))
+
+    def box(self, ph: Phantom, h: float) -> tuple[np.ndarray, np.ndarray]:
+        """Scanner box enclosing the envelope: the pelvis box grown by the largest thickness (SDF Lipschitz 1.3)."""
+        return ph.bounds("pelvis", pad=1.3 * float(np.max(np.abs(self.values))) + 3 * h)
+
+    def rasterise(self, ph: Phantom, origin: np.ndarray, steps: np.ndarray, shape: tuple) -> np.ndarray:
+        """Body mask (voxel centre inside), enclosed cavities filled."""
+        from scipy import ndimage
+
+        d, _ = sample_grid(lambda p: self.implicit(ph, p), origin, steps, shape,
+                           band=float(np.abs(steps).max()) + 1e-6, lipschitz=2.5)
+        return ndimage.binary_fill_holes(d <= 0)
+
+
 # --------------------------------------------------------------------------- label volume
 def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed: int = 0, fov=None,
                  bones: Iterable[str] | None = None, supersample: bool = True,
-                 progress: Callable[[str], None] | None = None):
+                 progress: Callable[[str], None] | None = None, skin: bool = False,
+                 tissue_seed: int | None = None):
     """Rasterise phantom bones into an integer label volume.
 
     Parameters
@@ -122,6 +211,12 @@ def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed
         Subset of bones to rasterise; the volume is cropped to them.
     supersample : bool
         Estimate partial volumes near the surface by supersampling.
+    skin : bool
+        Also label the soft-tissue envelope of the pelvis region (``skin``, see the
+        module docstring); needs the pelvis among the rasterised bones.
+    tissue_seed : int, optional
+        Seed of the subject's soft-tissue draw (`phantoms.skeleton.pelvis_tissue_thickness`;
+        default `seed`): the motion trials' seed, so that the markers sit on this skin.
 
     Returns
     -------
@@ -144,8 +239,14 @@ def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed
     amp = noise * float(np.mean(h))                 # boundary jitter amplitude, m
     # padding independent of the noise level so clean and noisy volumes share one grid
     boxes = {b: ph.bounds(b, pad=3 * float(h.max())) for b in names}
-    lo = np.min([bx[0] for bx in boxes.values()], axis=0)
-    hi = np.max([bx[1] for bx in boxes.values()], axis=0)
+    skin_field = None
+    if skin and "pelvis" in names:
+        skin_field = SkinField.of(ph, seed if tissue_seed is None else tissue_seed)
+        boxes_all = dict(boxes, skin=skin_field.box(ph, float(h.max())))
+    else:
+        boxes_all = boxes
+    lo = np.min([bx[0] for bx in boxes_all.values()], axis=0)
+    hi = np.max([bx[1] for bx in boxes_all.values()], axis=0)
     fbox = _fov_box(ph, fov)
     if fbox is not None:
         lo, hi = np.maximum(lo, fbox[0]), np.minimum(hi, fbox[1])
@@ -216,6 +317,17 @@ def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed
                 win[sel] = mine[sel] < ph.sdf(oname, cpts[sel])
             inside[conflict] = win
         region[inside] = lab
+    if skin_field is not None:
+        if progress:
+            progress(TISSUE_LABEL_NAME)
+        blo, bhi = boxes_all["skin"]
+        a = np.clip(np.floor(blo / h).astype(np.int64) - i0, 0, shape)
+        c = np.clip(np.ceil(bhi / h).astype(np.int64) - i0 + 1, 0, shape)
+        if np.all(c > a):
+            body = skin_field.rasterise(ph, origin + a * h, steps, tuple(int(x) for x in (c - a)))
+            region = labels[a[0]:c[0], a[1]:c[1], a[2]:c[2]]
+            region[body & (region == 0)] = DEFAULT_TISSUE_LABEL
+            label_map[TISSUE_LABEL_NAME] = DEFAULT_TISSUE_LABEL
     affine = np.eye(4)
     affine[:3, :3] = np.diag(h * 1000.0)
     affine[:3, 3] = origin * 1000.0
@@ -284,11 +396,13 @@ def write_label_nifti(path: str | os.PathLike, labels: np.ndarray, affine_mm: np
 def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0,
                   seed: int = 0, fov=None, bones: Iterable[str] | None = None,
                   progress: Callable[[str], None] | None = None, extra_truth: dict | None = None,
-                  meshes: bool = True) -> dict[str, Path]:
+                  meshes: bool = True, skin: bool = True) -> dict[str, Path]:
     """Write ``labels.nii.gz``, ``label_map.json``, ``meshes/<bone>.ply`` (mm) and ``truth.json`` (m).
 
     `extra_truth` entries (e.g. the motion phantom's knee laws) are merged into ``truth.json``;
     ``meshes=False`` skips the exact reference meshes (the pipeline does not read them).
+    ``skin=True`` also labels the soft-tissue envelope of the pelvis (label ``skin``, see
+    `label_volume`; the subject's tissue drawn from `seed`, the motion trials' seed).
 
     Returns the written paths by role.  Files are written atomically; use
     `kinematics.atomic.staged_dir` around this call to publish the folder at once.
@@ -297,10 +411,11 @@ def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e
 
     out = Path(out_dir)
     labels, affine, label_map = label_volume(ph, voxel=voxel, noise=noise, seed=seed, fov=fov, bones=bones,
-                                             progress=(lambda b: progress(f"rasterising {b}")) if progress else None)
+                                             progress=(lambda b: progress(f"rasterising {b}")) if progress else None,
+                                             skin=skin, tissue_seed=seed)
     paths = {"labels": write_label_nifti(inside(out, "labels.nii.gz"), labels, affine),
              "label_map": write_text(inside(out, "label_map.json"), json.dumps(label_map, indent=1) + "\n")}
-    for b in label_map if meshes else ():
+    for b in [b for b in label_map if b != TISSUE_LABEL_NAME] if meshes else ():
         if progress:
             progress(f"meshing {b}")
         paths[f"mesh:{b}"] = write_ply_mm(
@@ -311,6 +426,14 @@ def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e
                       "noise": float(noise), "noise_seed": int(seed), "affine_units": "mm",
                       "shape": list(labels.shape),
                       "meshes": "meshes/<bone>.ply in mm, scanner frame" if meshes else None}
+    if TISSUE_LABEL_NAME in label_map:
+        from .skeleton import pelvis_skin_sites
+
+        truth["image"]["skin"] = {
+            "label": int(label_map[TISSUE_LABEL_NAME]), "units": "m", "frame": "scanner",
+            "model": "offset of the pelvis by a smooth thickness field through the marker sites (phantoms.imaging)",
+            "sites": {k: {"landmark": p.tolist(), "normal": n.tolist(), "thickness": float(t)}
+                      for k, (p, n, t) in pelvis_skin_sites(ph, seed).items()}}
     truth.update(extra_truth or {})
     paths["truth"] = write_text(inside(out, "truth.json"), json.dumps(truth, indent=1) + "\n")
     return paths

@@ -45,7 +45,7 @@ from kinematics.pig import SegmentPose, joint_angles, pelvis_frame
 from kinematics.soft_tissue import draw_thickness
 from kinematics.subject import SubjectMeasurements
 
-__all__ = ["LAB_FROM_BODY", "Site", "PhantomSkeleton", "phantom_skeleton", "SIDES", "MARKER_RADIUS",
+__all__ = ["LAB_FROM_BODY", "Site", "PhantomSkeleton", "phantom_skeleton", "pelvis_tissue_thickness", "pelvis_skin_sites", "SIDES", "MARKER_RADIUS",
            "PIG_MARKERS", "EXTRA_MARKERS", "DEVICE_MARKERS"]
 
 #: body frame (X anterior, Y superior, Z right) -> lab frame (X forward, Y left, Z up)
@@ -226,6 +226,34 @@ def _sdf_normal_body(ph, bone: str, p_body: np.ndarray, h: float = 2e-4) -> np.n
     return _unit(A[:3, :3].T @ g)
 
 
+def pelvis_tissue_thickness(seed: int) -> dict:
+    """The subject's soft tissue (m) over the ASIS and PSIS (``{"ASI": t, "PSI": t}``, both sides share it).
+
+    Drawn around the population table (`kinematics.soft_tissue.draw_thickness`) from the stream
+    ``default_rng([seed, 7])``: the same numbers for the markers (`phantom_skeleton`) and for the
+    skin envelope of the label volume (`phantoms.imaging.label_volume`).
+    """
+    rng_t = np.random.default_rng([int(seed), 7])
+    return {site: draw_thickness(rng_t, site) for site in ("ASI", "PSI")}
+
+
+def pelvis_skin_sites(ph, seed: int) -> dict:
+    """Scanner-frame pelvic marker sites of `ph`: name -> (bony landmark (3,), outward unit normal (3,), thickness).
+
+    The landmark is the phantom's exact RASI/LASI/RPSI/LPSI, the normal the pelvis SDF's gradient there
+    (as `phantom_skeleton` places the markers), the thickness `pelvis_tissue_thickness(seed)` (m).
+    """
+    A = np.asarray(ph.placement, float)
+    plm = ph.body_truth()["bones"]["pelvis"]["landmarks"]
+    t = pelvis_tissue_thickness(seed)
+    out = {}
+    for S in ("R", "L"):
+        for site in ("ASI", "PSI"):
+            p_body = np.asarray(plm[f"{S}{site}"], float)
+            out[f"{S}{site}"] = (A[:3, :3] @ p_body + A[:3, 3], A[:3, :3] @ _sdf_normal_body(ph, "pelvis", p_body), t[site])
+    return out
+
+
 def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
     """Build the skeleton model of a `phantoms.anatomy.Phantom` (both legs needed).
 
@@ -271,9 +299,7 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
     # Pelvis markers: soft tissue measured along the bone's outward normal (as CT/MRI/ultrasound measure it),
     # one thickness per site and subject drawn around the population table (kinematics.soft_tissue; both
     # sides share it), from its own stream so the knee laws do not change with it.
-    rng_t = np.random.default_rng([seed, 7])
-    for site in ("ASI", "PSI"):
-        tissue[site] = draw_thickness(rng_t, site)
+    tissue.update(pelvis_tissue_thickness(seed))
     for S in ("R", "L"):
         for site in ("ASI", "PSI"):
             p_body = np.asarray(plm[f"{S}{site}"], float)

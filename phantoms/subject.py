@@ -1,7 +1,7 @@
 """A complete phantom subject folder: what a user brings to ``personalize run``.
 
 ``write_subject`` writes the imaging half (``labels.nii.gz``, ``label_map.json``,
-``meshes/``) and, for two-legged phantoms, the motion half (``static.c3d``,
+``meshes/``; the label volume carries the pelvis's skin envelope, label ``skin``) and, for two-legged phantoms, the motion half (``static.c3d``,
 gait, crouch and functional trials, ``subject.json``, ``truth/``), with one
 ``truth.json`` holding the anatomy, the joints and the knee laws.
 """
@@ -18,7 +18,7 @@ from .imaging import write_phantom
 def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0,
                   seed: int = 0, motion: bool = True, trials: dict | None = None, fov=None,
                   bones: Iterable[str] | None = None, meshes: bool = True,
-                  progress: Callable[[str], None] | None = None) -> dict[str, Path]:
+                  progress: Callable[[str], None] | None = None, skin: bool = True) -> dict[str, Path]:
     """Write a phantom subject folder into `out_dir` (stage it with `kinematics.atomic.staged_dir`).
 
     Parameters
@@ -31,6 +31,8 @@ def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3,
     motion : also write the motion trials (needs a two-legged phantom)
     trials : keyword arguments for `phantoms.motion.make_trials` (e.g. ``gait_trials=1``)
     fov, bones, meshes, progress : as for `phantoms.imaging.write_phantom`
+    skin : also label the pelvis's soft-tissue envelope (label ``skin``; the markers of the motion
+        trials sit on it: both use the tissue drawn from `seed`)
 
     Returns
     -------
@@ -44,7 +46,7 @@ def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3,
 
         extra = write_trials(out, ph, seed, progress=progress, **(trials or {}))
     paths = write_phantom(out, ph, voxel=voxel, noise=noise, seed=seed, fov=fov, bones=bones,
-                          progress=progress, extra_truth=extra, meshes=meshes)
+                          progress=progress, extra_truth=extra, meshes=meshes, skin=skin)
     if motion:
         paths["motion"] = out
     return paths

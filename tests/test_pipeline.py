@@ -283,16 +283,48 @@ def test_demo_model_in_opensim(demo, opensim, tmp_path):
     assert abs(np.nanmean(eng.rms) * 1e3 - summary["pipeline"]["ik"]["gait_01"]["rms_mean_mm"]) < 0.05
 
 
+def test_pelvic_soft_tissue_measured_in_the_mri(subject):
+    """The phantom's label volume carries the skin: the tissue under the four pelvic markers is measured in it
+    (source "MRI", within its sd of the drawn truth) and the measured-tissue covariance scale is in force."""
+    subj, _, summary = subject
+    truth = json.loads((subj / "truth.json").read_text())["image"]["skin"]["sites"]
+    st = summary["skin_thickness"]
+    assert set(st) == {"RASI", "LASI", "RPSI", "LPSI"}
+    for k, v in st.items():
+        assert v["source"] == "MRI"
+        assert abs(v["thickness_mm"] - 1e3 * truth[k]["thickness"]) < max(v["sd_mm"], 1.5), (k, v, truth[k])
+    from personalize.pipeline import MRI_HIP_COV_SCALE_MEASURED
+
+    assert summary["mri_hip_cov_scale"] == MRI_HIP_COV_SCALE_MEASURED
+
+
 def test_implausible_pelvis_registration_is_flagged(subject, tmp_path):
-    """Seed 2 draws a +3 sd ASIS soft tissue (54 mm): the markers cannot tell, but the registration's χ² and the
-    MRI/motion hip disagreement can, and the summary says so; the typical module subject raises no such note."""
+    """Seed 2 draws a +3 sd ASIS soft tissue (54 mm).  With a bone-only label volume (the label map does not
+    name the skin) the prior is used: the markers cannot tell, but the registration's χ² and the MRI/motion hip
+    disagreement can, and the summary says so.  With the skin label the tissue is measured and the MRI hip is
+    right; the typical module subject raises no such note."""
     subj = write_phantom_subject(tmp_path / "thick", seed=2, voxel_mm=2.0)
-    summary = run_subject(subj, tmp_path / "out")
+    bone_only = tmp_path / "bone_only"
+    shutil.copytree(subj, bone_only)
+    lm = json.loads((bone_only / "label_map.json").read_text())
+    assert lm.pop("skin") > 0
+    (bone_only / "label_map.json").write_text(json.dumps(lm))
+    summary = run_subject(bone_only, tmp_path / "out", report=False)
     assert summary["errors"]["hip_centre_mm"]["mri"] > 15.0
+    assert "skin_thickness" not in summary
     notes = " | ".join(summary["notes"])
     assert "low confidence: pelvis registration" in notes
     assert "hip centres disagree" in notes
     assert summary["errors"]["hip_centre_mm"]["fused"] < summary["errors"]["hip_centre_mm"]["mri"]
+    measured = run_subject(subj, tmp_path / "out_skin", report=False)
+    truth = json.loads((subj / "truth.json").read_text())["image"]["skin"]["sites"]
+    assert truth["RASI"]["thickness"] > 0.05
+    assert measured["skin_thickness"]["RASI"]["source"] == "MRI"
+    for k in ("RASI", "LASI"):
+        m = measured["skin_thickness"][k]
+        assert abs(m["thickness_mm"] - 1e3 * truth[k]["thickness"]) < m["sd_mm"], (k, m)
+    assert measured["errors"]["hip_centre_mm"]["mri"] < 6.0
+    assert not any(n.startswith("low confidence: pelvis") for n in measured["notes"])
     _, _, typical = subject
     assert not any(n.startswith("low confidence: pelvis") for n in typical["notes"])
 
