@@ -26,7 +26,9 @@
    centre and the Plug-in-Gait knee axis stand in (noted in ``notes``);
 5. **fusion** (Tändl et al. 2010, sec. 4.5): product of Gaussians of the two
    sources for the hip, knee and ankle centres, and on the sphere for the
-   knee and ankle axes (`personalize.fusion`);
+   knee and ankle axes (`personalize.fusion`); the thigh and shank lengths
+   and the knee law's intercept (the standing knee translation) too
+   (`personalize.parameter_fusion`);
 6. **model** (`personalize.model_builder`): the knee law's flexion slopes
    fitted from IK with free knee translations when physiological, else the
    default law (`fit_knee_laws`, the choice recorded in ``sources``); its
@@ -34,7 +36,10 @@
    law's standing translation); written as ``model.osim`` (with the bone
    meshes), ``model.json`` and ``meshes/<bone>.stl``;
 7. **IK** of every trial (`kinematics.ik.solve_ik`): ``kinematics/<trial>.mot``
-   and ``kinematics/<trial>_marker_errors.sto``;
+   and ``kinematics/<trial>_marker_errors.sto``; and per dynamic trial the
+   hip-first (Plug-in-Gait) and foot-first chains blended frame by frame with
+   Gaussian weights (`kinematics.chain_blend`): ``kinematics/<trial>_chains.mot``
+   and ``_chain_weights.sto``;
 8. ``summary.json`` and ``report.html``; for phantom subjects (``truth.json``
    and ``truth/static_centres.trc`` present) the errors against the truth.
 
@@ -74,7 +79,8 @@ centre), so a functional centre also corrects the registration error the
 other hip shares.  The knee axes are calibrated the same way
 (`MRI_KNEE_AXIS_SD_SCALE`, `MOTION_KNEE_AXIS_SD_DEG`) and so are the ankle axes
 (`MRI_ANKLE_AXIS_SD_SCALE`; the transmalleolar `MOTION_ANKLE_AXIS_SD_DEG` is
-the palpation value, not the phantoms' 0.07 deg).  Other floors: Plug-in-Gait knee/ankle centres `PIG_CENTRE_SD`,
+the palpation value, not the phantoms' 0.07 deg).  The knee and ankle centres: `MRI_CENTRE_COV_SCALE` and
+`PIG_CENTRE_SD` (benchmarks/knee_ankle_calibration.py).  Other floors:
 torsioned-tibia ankle axis `PIG_ANKLE_AXIS_SD_DEG`.
 """
 from __future__ import annotations
@@ -91,7 +97,7 @@ from kinematics.errors import FitError, InputError
 from kinematics.markers import MarkerTrial
 
 __all__ = ["run_subject", "SubjectInputs", "find_inputs", "estimate_joints", "JointEstimates", "fit_knee_laws",
-           "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES", "write_phantom_subject", "SHORT_TRIALS", "MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MOTION_HIP_STA_COV", "fuse_hips", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE", "PIG_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD"]
+           "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES", "write_phantom_subject", "SHORT_TRIALS", "MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MOTION_HIP_STA_COV", "fuse_hips", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE", "PIG_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD", "MRI_CENTRE_COV_SCALE"]
 
 #: Hip error models, calibrated on 24 TRAINING phantom subjects (48 legs; `personalize.validate.draw_subjects(24,
 #: seed=1000)`, never a validation seed; benchmarks/results/fusion_calibration*.json; a 12/12 split of the same
@@ -129,7 +135,12 @@ MRI_ANKLE_AXIS_SD_SCALE = 0.51
 MOTION_ANKLE_AXIS_SD_DEG = 3.0
 #: Plug-in-Gait torsioned-tibia ankle axis (no medial malleolus marker): assumed sd, not calibrated
 PIG_ANKLE_AXIS_SD_DEG = 6.0
-PIG_CENTRE_SD = 0.010
+#: Plug-in-Gait knee / ankle centre sd (m per axis) and the registered MRI knee / ankle centre covariance scale,
+#: calibrated on 8 training phantoms (16 legs; benchmarks/knee_ankle_calibration.py): mean Mahalanobis d² / 3 of
+#: the former models (10 mm; unscaled registration covariance) was 0.16 / 0.61 (motion) and 0.14 / 0.12 (MRI).
+#: A registration that takes a fused centre as its anchor gets it back on the unscaled (marker-noise) scale.
+PIG_CENTRE_SD = {"knee": 0.0040, "ankle": 0.0078}
+MRI_CENTRE_COV_SCALE = {"knee": 0.14, "ankle": 0.12}
 #: fall-backs without functional data: Davis regression hip centre (errors ~1-3 cm, Leardini et al. 1999),
 #: Plug-in-Gait knee axis from the KNE/THI markers
 DAVIS_HIP_SD = 0.015
@@ -347,7 +358,7 @@ def motion_knee_axis(static, trials, side: str):
         raise InputError(static.source, f"SARA needs 3 {S} thigh and 3 {S} shank markers")
     est = sara(P.R, P.t, D.R, D.t)
     sd = float(np.hypot(np.degrees(est.direction_sd), MOTION_KNEE_AXIS_SD_DEG))
-    return est.direction_proximal, sd, est.point_proximal, est.cov_point_proximal + PIG_CENTRE_SD**2 * np.eye(3)
+    return est.direction_proximal, sd, est.point_proximal, est.cov_point_proximal + PIG_CENTRE_SD["knee"]**2 * np.eye(3)
 
 
 # --------------------------------------------------------------------------- joint estimates
@@ -564,8 +575,8 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
         # ---- femur registration: epicondyle markers + the fused hip centre.  The registration's marker noise
         # model is the uncalibrated (conservative) one, so the hip anchor enters on that scale too
         # (cov / MRI_HIP_COV_SCALE): otherwise the calibrated hip would outweigh the knee markers.
-        k_pig = (np.median(rec_static.centres[f"knee_{s}"], axis=0), PIG_CENTRE_SD**2 * np.eye(3))
-        a_pig = (np.median(rec_static.centres[f"ankle_{s}"], axis=0), PIG_CENTRE_SD**2 * np.eye(3))
+        k_pig = (np.median(rec_static.centres[f"knee_{s}"], axis=0), PIG_CENTRE_SD["knee"]**2 * np.eye(3))
+        a_pig = (np.median(rec_static.centres[f"ankle_{s}"], axis=0), PIG_CENTRE_SD["ankle"]**2 * np.eye(3))
         reg_f = _register_with_centre(f"femur_{s}", bones, [f"femur_{s}"], (f"{S}KNE", f"{S}MFC", f"{S}TRO"), static_pos,
                                       surfaces, (j[f"hip_{s}"]["origin"], j[f"hip_{s}"]["origin_cov"]),
                                       (hf.mean, hf.cov / out.mri_hip_scale),
@@ -573,6 +584,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
                                       fallback=[("pig_knee_centre", j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"], *k_pig)])
         out.registrations[f"femur_{s}"] = reg_f
         k_mri = reg_f.transfer_point(j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"])
+        k_mri = (k_mri[0], MRI_CENTRE_COV_SCALE["knee"] * np.asarray(k_mri[1]))
         ku, ksd, _ = reg_f.transfer_direction(np.asarray(j[f"knee_{s}"]["rotation"])[:, 2], j[f"knee_{s}"]["axis_sd_deg"])
         ksd *= MRI_KNEE_AXIS_SD_SCALE
         say(f"knee {S}: functional axis")
@@ -591,7 +603,8 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
         # ---- shank registration: malleolar markers + the fused knee centre
         reg_t = _register_with_centre(f"tibia_{s}", bones, [f"tibia_{s}", f"fibula_{s}"],
                                       (f"{S}ANK", f"{S}MMA", f"{S}TTB", f"{S}HFB"), static_pos, surfaces,
-                                      (j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"]), (kf.mean, kf.cov),
+                                      (j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"]),
+                                      (kf.mean, kf.cov / MRI_CENTRE_COV_SCALE["knee"]),
                                       axis=_joint_axis(j[f"ankle_{s}"]),
                                       fallback=[("pig_ankle_centre", j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"], *a_pig)])
         out.registrations[f"tibia_{s}"] = reg_t
@@ -600,6 +613,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
                 out.notes.append(f"{r.segment}: fewer than 3 landmark/marker correspondences; registered with the Plug-in-Gait joint "
                                  "centre (MRI and motion estimates of this segment are correlated)")
         a_mri = reg_t.transfer_point(j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"])
+        a_mri = (a_mri[0], MRI_CENTRE_COV_SCALE["ankle"] * np.asarray(a_mri[1]))
         au, asd, _ = reg_t.transfer_direction(np.asarray(j[f"ankle_{s}"]["rotation"])[:, 2], j[f"ankle_{s}"]["axis_sd_deg"])
         asd *= MRI_ANKLE_AXIS_SD_SCALE
         af = fuse_gaussian([a_mri, a_pig], ("mri", "motion"))
@@ -617,7 +631,8 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
         try:
             reg_c = _register_with_centre(f"calcn_{s}", bones, [f"calcn_{s}", f"talus_{s}", f"toes_{s}"],
                                           (f"{S}HEE", f"{S}D1M", f"{S}D5M"), static_pos, surfaces,
-                                          (j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"]), (af.mean, af.cov),
+                                          (j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"]),
+                                          (af.mean, af.cov / MRI_CENTRE_COV_SCALE["ankle"]),
                                           virtual=_toe_landmark(bones.get(f"calcn_{s}", {}), S))
         except (InputError, FitError) as exc:
             reg_c = reg_t
@@ -824,7 +839,7 @@ def _subject_parameters(inputs: SubjectInputs, est: JointEstimates, static_pos: 
 KNEE_LAW_LIMITS = {"tx_flexion": (0.0, 0.008), "ty_flexion": (-0.005, 0.0005), "any": 0.010}
 
 
-def fit_knee_laws(pm, trials: list, say=lambda m: None) -> dict:
+def fit_knee_laws(pm, trials: list, say=lambda m: None, standing: dict | None = None) -> dict:
     """Knee laws fitted from IK with free knee translations, or the default law.
 
     Model: the personalised model without its knee couplings (translations
@@ -835,6 +850,10 @@ def fit_knee_laws(pm, trials: list, say=lambda m: None) -> dict:
     (`KNEE_LAW_LIMITS`); otherwise the default law is used.  Only the
     flexion slopes are fitted (the ab/adduction and rotation excursions of
     gait and crouching are a few degrees: their slopes would be noise).
+
+    `standing`, when given, receives per side the fitted law's knee translation at the
+    standing pose and its covariance from the fit, ``(t (3,) m, cov (3, 3) m²)``: the motion
+    estimate of the law's intercept (`personalize.parameter_fusion.fuse_knee_standing_translation`).
 
     Returns
     -------
@@ -867,6 +886,9 @@ def fit_knee_laws(pm, trials: list, say=lambda m: None) -> dict:
         except (InputError, FitError) as exc:
             out[s] = (default, f"default law (fit failed: {exc})")
             continue
+        if standing is not None:
+            q = np.array([[pm.standing_q[pm.model.coordinate_index(f"knee_flexion_{s}")]]])
+            standing[s] = (fit.predict(q)[0], np.diag(fit.predict_sd(q)[0] ** 2))
         sl = fit.slopes[:, 0]
         lim = KNEE_LAW_LIMITS
         ok = (lim["tx_flexion"][0] <= sl[0] <= lim["tx_flexion"][1] and lim["ty_flexion"][0] <= sl[1] <= lim["ty_flexion"][1]
@@ -904,6 +926,57 @@ def _bone_meshes_lab(surfaces: dict, est: JointEstimates, sides) -> dict:
         T[:3, :3], T[:3, 3] = reg.R, reg.t
         m.apply_transform(T)
         out[bone] = (m, seg_of[bone][1])
+    return out
+
+
+def _chain_blend(inputs: SubjectInputs, stage: Path, notes: list, with_truth: bool) -> dict:
+    """Per-frame Gaussian blend of the hip-first and foot-first chains of every dynamic trial (`kinematics.chain_blend`).
+
+    Writes ``kinematics/<trial>_chains.mot`` (Plug-in-Gait angles of the blended segments, deg) and
+    ``kinematics/<trial>_chain_weights.sto`` (the foot-to-hip chain's weight per segment); returns the median
+    weights and, for phantoms, the angle RMSE of each chain and of the blend against the true Plug-in-Gait angles
+    of the gait trials (``truth/<trial>_angles.mot``).
+    """
+    from kinematics.reconstruction import ANGLE_COLUMNS, reconstruct
+    from kinematics.storage import read_mot, write_mot, write_sto
+
+    func = inputs.trials.get(inputs.functional) if inputs.functional else None
+    out: dict = {"median_foot_to_hip_weight": {}, "files": "kinematics/<trial>_chains.mot (deg), "
+                 "kinematics/<trial>_chain_weights.sto (weight of the foot-to-hip chain; Plug-in-Gait has 1 - w)"}
+    rmse: dict = {}
+    for name, trial in sorted(inputs.trials.items()):
+        if name == inputs.functional or name.startswith("functional"):
+            continue
+        methods = ("pig", "foot-to-hip", "blend") if with_truth and name.startswith("gait") else ("blend",)
+        recs = {}
+        for m in methods:
+            try:
+                recs[m] = reconstruct(trial, m, static=inputs.static, subject=inputs.subject, functional=func,
+                                      check_static=False)
+            except (InputError, FitError) as exc:
+                notes.append(f"chain blend of {name} ({m}): {exc}")
+        rec = recs.get("blend")
+        if rec is None:
+            continue
+        write_mot(inside(stage, f"kinematics/{name}_chains.mot"), ANGLE_COLUMNS, rec.time, rec.angle_table(),
+                  rotational=ANGLE_COLUMNS, name=f"blended chains {name}")
+        segs = sorted(rec.weights)
+        write_sto(inside(stage, f"kinematics/{name}_chain_weights.sto"), segs, rec.time,
+                  np.column_stack([rec.weights[k] for k in segs]),
+                  header_extra=["weight of the foot-to-hip chain per segment and frame (0-1)"], name="ChainWeights")
+        out["median_foot_to_hip_weight"][name] = {k: float(np.nanmedian(v)) for k, v in rec.weights.items()
+                                                  if np.isfinite(v).any()}
+        tpath = inputs.folder / "truth" / f"{name}_angles.mot"
+        if len(recs) == 3 and tpath.is_file():
+            tab = read_mot(tpath)
+            tv = tab.values if tab.in_degrees else np.degrees(tab.values)
+            for m, r in recs.items():
+                d = np.degrees(r.angle_table()) - np.array([np.interp(r.time, tab.time, tv[:, tab.columns.index(c)])
+                                                            for c in ANGLE_COLUMNS]).T
+                rmse.setdefault(m, []).append(np.sqrt(np.nanmean(d**2, axis=0)))
+    if rmse:
+        out["angle_rmse_deg_mean_over_angles"] = {m: float(np.mean(v)) for m, v in rmse.items()}
+        out["angle_rmse_deg"] = {m: dict(zip(ANGLE_COLUMNS, np.mean(v, axis=0).tolist())) for m, v in rmse.items()}
     return out
 
 
@@ -958,7 +1031,36 @@ def _report(path: Path, summary: dict, est: JointEstimates, ik: dict, ls, surfac
                          "standing with a taped marker.")
         est_items.append(Table(["marker", "thickness (mm)", "sd (mm)", "source", "note"], srows,
                                caption="Soft tissue used by the pelvis registration"))
+    lrows = []
+    for k, v in summary.get("estimates", {}).items():
+        if k.endswith("_length"):
+            f = v["fused"]
+            lrows.append([k[:-7], round(1e3 * v["mri"], 1), round(1e3 * v["mri_sd"], 2), round(1e3 * v["motion"], 1),
+                          round(1e3 * v["motion_sd"], 2), round(1e3 * f["mean"][0], 1), round(1e3 * f["sd"][0], 2),
+                          f"mri {f['weights']['mri']:.2f} / motion {f['weights']['motion']:.2f}"])
+        elif k.endswith("_standing_translation"):
+            f = v["fused"]
+            lrows.append([k, "0 / 0 / 0", "", " / ".join(f"{1e3 * x:+.1f}" for x in v["motion"]), "",
+                          " / ".join(f"{1e3 * x:+.2f}" for x in f["mean"]), round(1e3 * float(np.mean(f["sd"])), 2),
+                          f"mri {f['weights']['mri']:.2f} / motion {f['weights']['motion']:.2f}"])
+    if lrows:
+        est_items.append(Table(["parameter", "MRI (mm)", "MRI sd", "motion (mm)", "motion sd", "fused (mm)", "fused sd",
+                                "weights"], lrows,
+                               caption="Segment lengths (frame-free) and the knee law's intercept (standing knee "
+                                       "translation tx / ty / tz, knee frame), fused as Gaussians"))
     sections.append(Section("Per-joint estimates: MRI, motion and fused", est_items))
+    cb = summary.get("chain_blend", {})
+    if cb.get("median_foot_to_hip_weight"):
+        segs = ("femur_r", "tibia_r", "foot_r", "femur_l", "tibia_l", "foot_l")
+        crow = [[t, *(round(w.get(g, float("nan")), 2) for g in segs)] for t, w in cb["median_foot_to_hip_weight"].items()]
+        items = ["Each segment's pose is blended frame by frame from the hip-first (Plug-in-Gait) and the foot-first "
+                 "(Tändl et al.) chains with Gaussian weights from each chain's rigid marker residual on that segment "
+                 "(kinematics/<trial>_chains.mot, _chain_weights.sto)."]
+        items.append(Table(["trial", *segs], crow, caption="Median weight of the foot-to-hip chain"))
+        if "angle_rmse_deg_mean_over_angles" in cb:
+            items.append("Gait trials, angle RMSE against the truth averaged over the 18 Plug-in-Gait angles: "
+                         + ", ".join(f"{m} {v:.2f} deg" for m, v in cb["angle_rmse_deg_mean_over_angles"].items()))
+        sections.append(Section("Hip-first and foot-first chains, blended per frame", items))
     if "errors" in summary:
         er = [[k, *(round(v[s], 2) for s in ("mri", "motion", "fused"))] for k, v in summary["errors"].items()]
         sections.append(Section("Errors against the phantom truth (worst side)",
@@ -980,7 +1082,7 @@ def _report(path: Path, summary: dict, est: JointEstimates, ik: dict, ls, surfac
                 ax.plot(res.time, np.degrees(res.q[:, res.coordinates.index(c)]), label=s)
         ax.set_title(jn)
         ax.set_xlabel("time (s)")
-        ax.set_ylabel("deg (0 = static pose)")
+        ax.set_ylabel("deg (hip, knee: anatomical; others: 0 = static pose)")
         ax.legend()
     fig.tight_layout()
     items.append(Figure(fig, caption=f"{name}: joint angles of the personalised model"))
@@ -1063,6 +1165,7 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
     from .frames import joints_from_landmarks
     from .landmarks import detect_landmarks
     from .model_builder import build_personal_model, save_model_json, save_model_osim, write_meshes
+    from .parameter_fusion import fuse_knee_standing_translation, fuse_segment_lengths
     from .registration import static_marker_positions
     from .surfaces import load_bones
 
@@ -1090,11 +1193,25 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
     params = _subject_parameters(inputs, est, static_pos)
     pm = build_personal_model(params)
     dyn = [t for k, t in sorted(inputs.trials.items()) if not k.startswith("functional")]
-    laws = fit_knee_laws(pm, dyn, say)
+    t_motion: dict = {}
+    laws = fit_knee_laws(pm, dyn, say, standing=t_motion)
     sources = dict(params.sources)
     sources.pop("knee law", None)
+    law_fusion = {}
     for s_, (law, text) in laws.items():
         sources[f"knee_law_{s_}"] = text
+        if s_ in t_motion and f"knee_{s_}" in j_json:
+            # the law's intercept = the standing knee translation: MRI (0, detection cov, isotropic equivalent since
+            # the law's axes are the knee frame's) and motion (the fitted law at the standing pose) fused
+            Ck = np.asarray(j_json[f"knee_{s_}"]["origin_cov"], float)
+            f = fuse_knee_standing_translation(np.trace(Ck) / 3 * np.eye(3), *t_motion[s_])
+            C = np.array(law.coefficients, float)
+            C[:, -1] = f.mean
+            laws[s_] = (replace(law, coefficients=C), text)
+            law_fusion[s_] = (t_motion[s_], f)
+            sources[f"knee_law_{s_}"] += (f"; standing translation (intercept) fused: "
+                                          + " / ".join(f"{1e3 * v:+.2f}" for v in f.mean)
+                                          + f" mm (MRI weight {f.shares[0]:.2f})")
     sides_p = {s_: replace(sp, knee_law=laws[s_][0]) for s_, sp in params.sides.items()}
     pm = build_personal_model(replace(params, sides=sides_p, sources=sources))
     truth = truth_in_static_lab(inputs)
@@ -1128,6 +1245,17 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
             "state": [f"hip_{s}_{a}" for s in sides for a in "xyz"], "mean": hj.mean.tolist(), "cov": hj.cov.tolist(),
             "weights": dict(zip(hj.names, hj.shares.tolist())), "chi2": hj.chi2, "dof": hj.dof, "p_value": hj.p_value,
             "method": "generalised least squares of both MRI hips (registration cross-covariance) and each side's motion centre"}
+    for s_, (tm, f) in law_fusion.items():
+        est_json[f"knee_{s_}_standing_translation"] = {
+            "mri": [0.0, 0.0, 0.0], "motion": np.asarray(tm[0]).tolist(), "motion_cov": np.asarray(tm[1]).tolist(),
+            "fused": f.summary(), "components": ["knee_tx (anterior)", "knee_ty (proximal)", "knee_tz (lateral)"],
+            "meaning": "knee law intercept: tibia translation at the standing pose, knee frame axes, m"}
+    mri_c = {f"{jn}_{s_}": (np.asarray(j_json[f"{jn}_{s_}"]["origin"], float), np.asarray(j_json[f"{jn}_{s_}"]["origin_cov"], float))
+             for s_ in sides for jn in ("hip", "knee", "ankle") if f"{jn}_{s_}" in j_json}
+    mot_c = {f"{jn}_{s_}": est.centres[s_][jn]["motion"] for s_ in sides for jn in ("hip", "knee", "ankle")
+             if jn in est.centres[s_]}
+    for k, v in fuse_segment_lengths(mri_c, mot_c, sides).items():
+        est_json[f"{k}_length"] = v
     summary["estimates"] = est_json
     if est.skin:
         summary["skin_thickness"] = {k: v.summary() for k, v in est.skin.items()}
@@ -1163,6 +1291,7 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
                                 "frames": int(res.q.shape[0]),
                                 "worst_marker": f"{res.markers[int(np.nanargmax(me))]} {np.nanmax(me) * 1e3:.1f} mm"}
         summary["ik"] = ik_summary
+        summary["chain_blend"] = _chain_blend(inputs, stage, summary["notes"], truth is not None)
         dyn = [v["rms_mean_mm"] for k, v in ik_summary.items() if k != "static"]
         summary["ik_rms_mm"] = float(max(dyn)) if dyn else ik_summary["static"]["rms_mean_mm"]
         if truth is not None:

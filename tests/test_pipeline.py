@@ -47,6 +47,38 @@ def test_outputs_written(subject):
     assert model["knee_laws"]["r"]["joint"] == "knee_r"
 
 
+def test_lengths_intercepts_and_chain_blend(subject):
+    """Segment lengths and the knee law's intercept are fused and reported; the chains are blended per trial."""
+    from kinematics.storage import read_mot
+
+    subj, out, summary = subject
+    est = summary["estimates"]
+    truth = json.loads((subj / "truth.json").read_text())["joints"]["joints"]
+    for s in summary["sides"]:
+        for seg, (a, b) in (("thigh", ("hip", "knee")), ("shank", ("knee", "ankle"))):
+            e = est[f"{seg}_{s}_length"]
+            L = np.linalg.norm(np.subtract(truth[f"{a}_{s}"]["origin"], truth[f"{b}_{s}"]["origin"]))
+            # the scanner-frame MRI length is precise (sub-mm sd): it takes the weight, the fused length is the bone's
+            assert e["mri_sd"] < 1e-3 < e["motion_sd"] and e["fused"]["weights"]["mri"] > 0.95
+            assert abs(e["fused"]["mean"][0] - L) < 2e-3
+        t = est[f"knee_{s}_standing_translation"]
+        f = np.asarray(t["fused"]["mean"])
+        # the fused intercept shrinks the artefact-driven motion estimate towards the MRI's zero ...
+        assert np.linalg.norm(f) < np.linalg.norm(t["motion"])
+        assert abs(sum(t["fused"]["weights"].values()) - 1) < 1e-12 and t["fused"]["weights"]["mri"] > 0.5
+        # ... and is the model's knee translation at the standing pose
+        model = json.loads((out / "model.json").read_text())
+        q = model["standing_q"]
+        np.testing.assert_allclose([q[f"knee_t{a}_{s}"] for a in "xyz"], f, atol=1e-9)
+    cb = summary["chain_blend"]
+    assert set(cb["median_foot_to_hip_weight"]) == {"gait_01", "crouch_000_01"}
+    for w in cb["median_foot_to_hip_weight"].values():
+        assert all(0.0 <= v <= 1.0 for v in w.values())
+    ang = read_mot(out / "kinematics" / "gait_01_chains.mot")
+    assert ang.columns[0] == "hip_flexion_r" and np.isfinite(ang.values).mean() > 0.9
+    assert set(cb["angle_rmse_deg_mean_over_angles"]) == {"pig", "foot-to-hip", "blend"}
+
+
 def test_errors_against_truth(subject):
     _, _, summary = subject
     e = summary["errors"]
