@@ -79,8 +79,8 @@ centre), so a functional centre also corrects the registration error the
 other hip shares.  The knee axes are calibrated the same way
 (`MRI_KNEE_AXIS_SD_SCALE`, `MOTION_KNEE_AXIS_SD_DEG`) and so are the ankle axes
 (`MRI_ANKLE_AXIS_SD_SCALE`; the transmalleolar `MOTION_ANKLE_AXIS_SD_DEG` is
-the palpation value, not the phantoms' 0.07 deg).  The knee and ankle centres: `MRI_CENTRE_COV_SCALE` and
-`PIG_CENTRE_SD` (benchmarks/knee_ankle_calibration.py).  Other floors:
+the palpation value, not the phantoms' 0.07 deg).  The knee and ankle centres: `MRI_CENTRE_COV_SCALE`
+(``_MEASURED`` with the pelvic tissue measured) and `PIG_CENTRE_SD` (benchmarks/knee_ankle_calibration.py).  Other floors:
 torsioned-tibia ankle axis `PIG_ANKLE_AXIS_SD_DEG`.
 """
 from __future__ import annotations
@@ -97,7 +97,8 @@ from kinematics.errors import FitError, InputError
 from kinematics.markers import MarkerTrial
 
 __all__ = ["run_subject", "SubjectInputs", "find_inputs", "estimate_joints", "JointEstimates", "fit_knee_laws",
-           "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES", "write_phantom_subject", "SHORT_TRIALS", "MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MOTION_HIP_STA_COV", "fuse_hips", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE", "PIG_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD", "MRI_CENTRE_COV_SCALE"]
+           "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES", "write_phantom_subject", "SHORT_TRIALS", "MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MOTION_HIP_STA_COV", "fuse_hips", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE", "PIG_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD", "MRI_CENTRE_COV_SCALE",
+           "MRI_CENTRE_COV_SCALE_MEASURED"]
 
 #: Hip error models, calibrated on 24 TRAINING phantom subjects (48 legs; `personalize.validate.draw_subjects(24,
 #: seed=1000)`, never a validation seed; benchmarks/results/fusion_calibration*.json; a 12/12 split of the same
@@ -136,11 +137,14 @@ MOTION_ANKLE_AXIS_SD_DEG = 3.0
 #: Plug-in-Gait torsioned-tibia ankle axis (no medial malleolus marker): assumed sd, not calibrated
 PIG_ANKLE_AXIS_SD_DEG = 6.0
 #: Plug-in-Gait knee / ankle centre sd (m per axis) and the registered MRI knee / ankle centre covariance scale,
-#: calibrated on 8 training phantoms (16 legs; benchmarks/knee_ankle_calibration.py): mean Mahalanobis d² / 3 of
-#: the former models (10 mm; unscaled registration covariance) was 0.16 / 0.61 (motion) and 0.14 / 0.12 (MRI).
-#: A registration that takes a fused centre as its anchor gets it back on the unscaled (marker-noise) scale.
-PIG_CENTRE_SD = {"knee": 0.0040, "ankle": 0.0078}
+#: calibrated on TRAINING phantoms (benchmarks/knee_ankle_calibration.py, mean Mahalanobis d² = 3): with the
+#: pelvic tissue measured (12 subjects with the skin label, 24 legs) and with the prior tissue only
+#: (`MRI_CENTRE_COV_SCALE`, 8 bone-only subjects, 16 legs: the MRI knee and ankle are then worse, 1.4 / 1.0 mm
+#: median instead of 0.4 / 0.6 mm).  A registration that takes a fused centre as its anchor gets it back on the
+#: unscaled (marker-noise) scale.
+PIG_CENTRE_SD = {"knee": 0.0051, "ankle": 0.0083}
 MRI_CENTRE_COV_SCALE = {"knee": 0.14, "ankle": 0.12}
+MRI_CENTRE_COV_SCALE_MEASURED = {"knee": 0.017, "ankle": 0.050}
 #: fall-backs without functional data: Davis regression hip centre (errors ~1-3 cm, Leardini et al. 1999),
 #: Plug-in-Gait knee axis from the KNE/THI markers
 DAVIS_HIP_SD = 0.015
@@ -529,6 +533,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
         if v.note and v.source != "MRI" and "no body/skin label" not in v.note:
             out.notes.append(f"soft tissue under {v.marker}: {v.note}")
     out.mri_hip_scale = (MRI_HIP_COV_SCALE_MEASURED if all(m in measured for m in _PELVIS) else MRI_HIP_COV_SCALE)
+    centre_scale = MRI_CENTRE_COV_SCALE_MEASURED if all(m in measured for m in _PELVIS) else MRI_CENTRE_COV_SCALE
     say("registering the pelvis")
     regs = register_segments(lm_json, st, sides=inputs.sides, segments=("pelvis",),
                              surfaces={k: v.mesh for k, v in surfaces.items()},
@@ -584,7 +589,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
                                       fallback=[("pig_knee_centre", j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"], *k_pig)])
         out.registrations[f"femur_{s}"] = reg_f
         k_mri = reg_f.transfer_point(j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"])
-        k_mri = (k_mri[0], MRI_CENTRE_COV_SCALE["knee"] * np.asarray(k_mri[1]))
+        k_mri = (k_mri[0], centre_scale["knee"] * np.asarray(k_mri[1]))
         ku, ksd, _ = reg_f.transfer_direction(np.asarray(j[f"knee_{s}"]["rotation"])[:, 2], j[f"knee_{s}"]["axis_sd_deg"])
         ksd *= MRI_KNEE_AXIS_SD_SCALE
         say(f"knee {S}: functional axis")
@@ -604,7 +609,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
         reg_t = _register_with_centre(f"tibia_{s}", bones, [f"tibia_{s}", f"fibula_{s}"],
                                       (f"{S}ANK", f"{S}MMA", f"{S}TTB", f"{S}HFB"), static_pos, surfaces,
                                       (j[f"knee_{s}"]["origin"], j[f"knee_{s}"]["origin_cov"]),
-                                      (kf.mean, kf.cov / MRI_CENTRE_COV_SCALE["knee"]),
+                                      (kf.mean, kf.cov / centre_scale["knee"]),
                                       axis=_joint_axis(j[f"ankle_{s}"]),
                                       fallback=[("pig_ankle_centre", j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"], *a_pig)])
         out.registrations[f"tibia_{s}"] = reg_t
@@ -613,7 +618,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
                 out.notes.append(f"{r.segment}: fewer than 3 landmark/marker correspondences; registered with the Plug-in-Gait joint "
                                  "centre (MRI and motion estimates of this segment are correlated)")
         a_mri = reg_t.transfer_point(j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"])
-        a_mri = (a_mri[0], MRI_CENTRE_COV_SCALE["ankle"] * np.asarray(a_mri[1]))
+        a_mri = (a_mri[0], centre_scale["ankle"] * np.asarray(a_mri[1]))
         au, asd, _ = reg_t.transfer_direction(np.asarray(j[f"ankle_{s}"]["rotation"])[:, 2], j[f"ankle_{s}"]["axis_sd_deg"])
         asd *= MRI_ANKLE_AXIS_SD_SCALE
         af = fuse_gaussian([a_mri, a_pig], ("mri", "motion"))
@@ -632,7 +637,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
             reg_c = _register_with_centre(f"calcn_{s}", bones, [f"calcn_{s}", f"talus_{s}", f"toes_{s}"],
                                           (f"{S}HEE", f"{S}D1M", f"{S}D5M"), static_pos, surfaces,
                                           (j[f"ankle_{s}"]["origin"], j[f"ankle_{s}"]["origin_cov"]),
-                                          (af.mean, af.cov / MRI_CENTRE_COV_SCALE["ankle"]),
+                                          (af.mean, af.cov / centre_scale["ankle"]),
                                           virtual=_toe_landmark(bones.get(f"calcn_{s}", {}), S))
         except (InputError, FitError) as exc:
             reg_c = reg_t
