@@ -8,7 +8,8 @@
 2. Real bones against the hand-built model ``manual_ICL_MRI.osim``: distance
    of the hip, knee, ankle and subtalar joint centres and unsigned angle of
    their Z axes, for this code and for the STAPLE model
-   ``automatic_ICL_MRI.osim``.  For the subtalar joint, whose origin along
+   ``automatic_ICL_MRI.osim`` (and the hip centre's change with the articular
+   cap angle, +-20 %).  For the subtalar joint, whose origin along
    the axis is a convention, the distance from the reference centre to the
    detected axis line is printed as well.
    The talar trochlea's radius profile about each convention's axis and the
@@ -98,6 +99,28 @@ def reference_comparison() -> dict:
               f"{st[n]['angle_deg']:11.2f}  {note}")
     print("(angles between Z axes are unsigned; the hip Z is the pelvic frame's, as in both models)")
     return {"ours": ours, "staple": st, "flags": {k: v.flags for k, v in ls.bones.items() if v.flags}}
+
+
+def hip_cap_sensitivity() -> dict:
+    """ICL-MRI femoral head centre vs the hand-built hip centre for the articular cap angle x0.8 ... x1.2."""
+    from personalize.landmarks import detect_landmarks
+    from personalize.landmarks import femur as F
+    from personalize.reference_models import read_reference_joints
+    from personalize.surfaces import load_bones
+
+    manual = read_reference_joints(DATA / "reference_models" / "manual_ICL_MRI.osim", use_opensim=False)
+    surf = load_bones(DATA / "bones" / "ICL_MRI")
+    base, out = F.HEAD_CAP_DEG, {}
+    try:
+        for m in (0.8, 0.9, 1.0, 1.1, 1.2):
+            F.HEAD_CAP_DEG = base * m
+            fh = detect_landmarks({"femur_r": surf["femur_r"]}).bones["femur_r"].landmarks["femoral_head_centre"]
+            out[round(base * m, 1)] = float(np.linalg.norm(fh.position - manual["hip_r"].origin) * 1e3)
+    finally:
+        F.HEAD_CAP_DEG = base
+    print("ICL-MRI hip centre vs hand-built (mm) for the head cap angle (deg): "
+          + ", ".join(f"{k:g}: {v:.2f}" for k, v in out.items()))
+    return out
 
 
 def ankle_diagnostics() -> dict:
@@ -381,6 +404,7 @@ def main() -> None:
     if (DATA / "bones" / "ICL_MRI").is_dir():
         out["timing"] = timing(args.repeat)
         out["icl_vs_manual"] = reference_comparison()
+        out["icl_hip_cap"] = hip_cap_sensitivity()
         out["icl_ankle"] = ankle_diagnostics()
         out["ankle_staple_convention"] = staple_convention()
         out["tlem2"] = tlem2()

@@ -30,6 +30,9 @@ from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_TRUNCATED, Ax
 __all__ = ["detect_femur", "head_coverage", "find_head", "posterior_condyle_cylinder"]
 
 HEAD_RADII = np.arange(0.012, 0.0331, 0.0015)      # adult 20-28 mm, juvenile from ~12 mm
+#: the femoral head's articular cap: points within this angle of the head's pole (opposite the neck), deg; the
+#: head-neck junction lies at about 130-140 deg
+HEAD_CAP_DEG = 110.0
 CONDYLE_RADII = np.arange(0.012, 0.0361, 0.0015)
 #: condyle-centre fits use the posterior-distal arc up to 45 degrees anterior
 #: of the distal direction (normal . anterior < cos 45): the centre of an oval
@@ -259,7 +262,7 @@ def _articular_head(V, Nrm, A, fit, sel, region):
         dist = np.linalg.norm(d, axis=1)
         cos_pole = (d @ pole) / np.maximum(dist, 1e-12)
         band = max(0.001, 3.0 * float(fit.rms))
-        keep = region & (np.abs(dist - r) < band) & (cos_pole > np.cos(np.radians(110.0)))
+        keep = region & (np.abs(dist - r) < band) & (cos_pole > np.cos(np.radians(HEAD_CAP_DEG)))
         keep &= np.einsum("ij,ij->i", d, Nrm) > 0.8 * dist
         if keep.sum() < 30:
             break
