@@ -64,6 +64,7 @@ class Reconstruction:
     notes : tuple of str (calibration source, missing calibrations, ...)
     weights : dict segment -> (F,) weight of the foot-to-hip chain (``blend`` only)
     residuals : dict chain (``pig``, ``foot-to-hip``) -> dict segment -> (F,) m (``blend`` only)
+    chains : dict chain -> the Reconstruction it blended (``blend`` only)
     """
 
     method: str
@@ -77,6 +78,7 @@ class Reconstruction:
     source: str | None = None
     weights: dict = field(default_factory=dict)
     residuals: dict = field(default_factory=dict)
+    chains: dict = field(default_factory=dict)
 
     def angle_table(self) -> np.ndarray:
         """(F, 18) radians in the order of `ANGLE_COLUMNS`."""
@@ -205,7 +207,7 @@ def _chord_cov(trial, subject, s, centres, pelvis, cov_hip_pelvis, h: float = 1e
     return {f"hip{sfx}": median_covariance(c_hip), f"knee{sfx}": median_covariance(c_knee), f"ankle{sfx}": median_covariance(c_ankle)}
 
 
-def _reconstruct_pig(trial, subject, static, functional, notes) -> Reconstruction:
+def _reconstruct_pig(trial, subject, static, functional, notes, hip_est=None) -> Reconstruction:
     if static is not None:
         subject = static_foot_offsets(static, subject)
     if functional is None:
@@ -213,7 +215,8 @@ def _reconstruct_pig(trial, subject, static, functional, notes) -> Reconstructio
         segs = _our_segment_names(res.segments)
         notes += list(res.notes)
         return Reconstruction("pig", trial.time, res.centres, res.centre_cov, segs, res.angles, {}, tuple(notes), trial.source)
-    hip_est = _functional_hips_score(functional)
+    if hip_est is None:
+        hip_est = _functional_hips_score(functional)
     pig_segs, centres, pelvis = _pig_with_hips(trial, subject, {s: e.proximal for s, e in hip_est.items()})
     angles, pig_notes = leg_angles(trial, subject, pig_segs, centres, "no static trial")
     notes += pig_notes
@@ -314,7 +317,7 @@ def _reconstruct_blend(trial, subject, static, functional, notes, marker_sd) -> 
                                      "segment frames are taken from it)")
     a = _reconstruct_pig(trial, subject, static, functional, [])
     b = _reconstruct_f2h(trial, subject, static, functional, [], marker_sd)
-    a0 = _reconstruct_pig(static, subject, static, functional, [])
+    a0 = _reconstruct_pig(static, subject, static, functional, [], hip_est=a.hip_in_pelvis or None)
     b0 = _reconstruct_f2h(static, subject, static, functional, [], marker_sd, hip_est=b.hip_in_pelvis)
     ra = chain_residuals(a.segments, trial, a0.segments, static)
     rb = chain_residuals(b.segments, trial, b0.segments, static)
@@ -343,7 +346,7 @@ def _reconstruct_blend(trial, subject, static, functional, notes, marker_sd) -> 
     notes.append(f"blend: per-frame Gaussian weights from each chain's rigid marker residual; median foot-to-hip "
                  f"weight per segment: {med}")
     return Reconstruction("blend", trial.time, centres, cov, segs, angles, a.hip_in_pelvis, tuple(notes), trial.source,
-                          weights, {"pig": ra, "foot-to-hip": rb})
+                          weights, {"pig": ra, "foot-to-hip": rb}, {"pig": a, "foot-to-hip": b})
 
 
 def reconstruct(trial: MarkerTrial, method: str = "pig", *, static: MarkerTrial | None = None,

@@ -952,17 +952,13 @@ def _chain_blend(inputs: SubjectInputs, stage: Path, notes: list, with_truth: bo
     for name, trial in sorted(inputs.trials.items()):
         if name == inputs.functional or name.startswith("functional"):
             continue
-        methods = ("pig", "foot-to-hip", "blend") if with_truth and name.startswith("gait") else ("blend",)
-        recs = {}
-        for m in methods:
-            try:
-                recs[m] = reconstruct(trial, m, static=inputs.static, subject=inputs.subject, functional=func,
-                                      check_static=False)
-            except (InputError, FitError) as exc:
-                notes.append(f"chain blend of {name} ({m}): {exc}")
-        rec = recs.get("blend")
-        if rec is None:
+        try:
+            rec = reconstruct(trial, "blend", static=inputs.static, subject=inputs.subject, functional=func,
+                              check_static=False)
+        except (InputError, FitError) as exc:
+            notes.append(f"chain blend of {name}: {exc}")
             continue
+        recs = {**rec.chains, "blend": rec}
         write_mot(inside(stage, f"kinematics/{name}_chains.mot"), ANGLE_COLUMNS, rec.time, rec.angle_table(),
                   rotational=ANGLE_COLUMNS, name=f"blended chains {name}")
         segs = sorted(rec.weights)
@@ -972,7 +968,7 @@ def _chain_blend(inputs: SubjectInputs, stage: Path, notes: list, with_truth: bo
         out["median_foot_to_hip_weight"][name] = {k: float(np.nanmedian(v)) for k, v in rec.weights.items()
                                                   if np.isfinite(v).any()}
         tpath = inputs.folder / "truth" / f"{name}_angles.mot"
-        if len(recs) == 3 and tpath.is_file():
+        if with_truth and name.startswith("gait") and tpath.is_file():
             tab = read_mot(tpath)
             tv = tab.values if tab.in_degrees else np.degrees(tab.values)
             for m, r in recs.items():

@@ -131,12 +131,13 @@ def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None
     lb = long_bone_axes(tib)
     e, L = lb.axis, lb.length
     cut = dict(lb.cut)
-    near = _neighbour_ends(V, lb, femur, talus)
+    on = {(k, e): _end_on(V, lb, e, other) for k, other in (("femur", femur), ("talus", talus)) for e in (1, -1)}
+    near = _neighbour_ends(on)
     if near is not None:
         # bones from one scan sit in their joints: trust the neighbours over the end shapes
         ps = near
-        for sgn in (ps, -ps):
-            if cut[sgn] and _end_on(V, lb, sgn, femur if sgn == ps else talus):
+        for sgn, k in ((ps, "femur"), (-ps, "talus")):
+            if cut[sgn] and on[(k, sgn)]:
                 cut[sgn] = False
         if cut[1] and cut[-1]:
             res.flag(FLAG_TRUNCATED, "both tibial ends are planar cuts")
@@ -256,13 +257,16 @@ def _end_on(V: np.ndarray, lb, sgn: int, other: Surface | None) -> bool:
     return bool(np.isfinite(d).mean() > 0.2)
 
 
-def _neighbour_ends(V: np.ndarray, lb, femur: Surface | None, talus: Surface | None) -> int | None:
-    """Sign (+1 / -1 along ``lb.axis``) of the proximal end from the femur and talus, or None if they do not tell."""
+def _neighbour_ends(on: dict) -> int | None:
+    """Sign (+1 / -1 along the tibia's long axis) of the proximal end, or None if the neighbours do not tell.
+
+    `on[("femur" | "talus", end)]`: whether that end of the tibia lies on that neighbour (`_end_on`).
+    """
     votes = []
-    for other, toward in ((femur, 1), (talus, -1)):
-        on = [s for s in (1, -1) if _end_on(V, lb, s, other)]
-        if len(on) == 1:
-            votes.append(toward * on[0])
+    for other, toward in (("femur", 1), ("talus", -1)):
+        ends = [e for e in (1, -1) if on[(other, e)]]
+        if len(ends) == 1:
+            votes.append(toward * ends[0])
     if not votes or len(set(votes)) > 1:
         return None
     return votes[0]
