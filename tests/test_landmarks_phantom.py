@@ -222,3 +222,36 @@ def test_flat_tibial_plateau_under_the_femur_is_not_a_cut():
     # the coarse-imaging limits of the issue (twice the 1 mm ones)
     assert case["errors"]["ankle_centre"] < 2 * TOLERANCES["ankle_centre"]
     assert case["errors"]["ankle_axis"] < 2 * TOLERANCES["ankle_axis"]
+
+
+def test_truncated_tibia_under_the_femur_keeps_its_cut():
+    """A field of view that cuts the tibia: the end under the femur is proximal and is not a cut, the other end
+    stays a cut (flagged "truncated"), and the plateau is found at the right end."""
+    from phantoms.anatomy import make_phantom
+    from phantoms.imaging import label_volume
+    from personalize.io import LabelVolume
+    from personalize.surfaces import surfaces_from_labels
+
+    ph = make_phantom(seed=4)
+    truth = ph.truth()
+    plateau = np.asarray(truth["landmarks"]["bones"]["tibia_r"]["landmarks"]["plateau_centre"]["position"])
+    knee = np.asarray(truth["joints"]["joints"]["knee_r"]["origin"])
+    for f0, f1 in ((0.0, 0.55), (0.45, 1.0)):
+        labels, aff, lmap = label_volume(ph, voxel=(1e-3,) * 3, bones=["femur_r", "tibia_r"], fov=("tibia_r", f0, f1))
+        vol = LabelVolume(labels=labels, affine_m=np.diag([1e-3, 1e-3, 1e-3, 1.0]) @ aff, label_map=lmap, source="fov")
+        surf = surfaces_from_labels(vol, workers=1)
+        tib_mesh = surf["tibia_r"].mesh
+        if np.min(np.linalg.norm(np.asarray(tib_mesh.vertices) - plateau, axis=1)) < 0.01:
+            break                                  # this half holds the plateau (image axis sign not assumed)
+    assert "femur_r" in surf
+    # the phantom's flat plateau also looks like a cut: alone, both ends are "cuts" and no plateau is found
+    from personalize.landmarks.common import as_surface
+    from personalize.landmarks.tibia import detect_tibia
+    alone, _ = detect_tibia(as_surface(surf["tibia_r"].mesh, "tibia_r"), "tibia_r")
+    assert "plateau_centre" not in alone.landmarks
+    res = detect_landmarks(surf).bones["tibia_r"]
+    assert "truncated" in res.flags
+    assert np.linalg.norm(res.landmarks["plateau_centre"].position - plateau) < 3e-3
+    # proximal axis points from the cut towards the knee
+    y = res.frames["anatomical"]["rotation"][:, 1]
+    assert (knee - res.axes["shaft_axis"].point) @ y > 0
