@@ -13,8 +13,9 @@ Residual of chain c for segment s in frame f::
     p_csm   = median over static frames of R_cs(t)ᵀ (x_m(t) - o_cs(t)),
 
 over the markers m rigidly attached to the segment's bone (`SEGMENT_MARKERS`)
-that both trials carry: a chain whose frame follows the markers rigidly has
-a small residual.  The two poses are then fused as Gaussians with variances
+that both trials carry, leaving out those the chains build the frame from
+(`FRAME_MARKERS`: a frame always fits them) when two others remain: a chain
+whose frame follows the bone's markers rigidly has a small residual.  The two poses are then fused as Gaussians with variances
 σ_c² = r_cs² + floor² (`blend_poses`): the foot-to-hip chain gets the weight
 w = σ_pig² / (σ_pig² + σ_f2h²), rotations are averaged on SO(3) along the
 geodesic and origins linearly.  Joint angles are recomputed from the blended
@@ -45,15 +46,26 @@ SEGMENT_MARKERS = {
 CENTRE_SEGMENT = {"hip": "femur", "knee": "tibia", "ankle": "tibia"}
 
 
+#: markers either chain builds the segment's frame from (a frame always fits those): left out of the residual
+#: when at least two other markers of the segment remain
+FRAME_MARKERS = {"femur": ("THI", "KNE"), "tibia": ("TIB", "ANK"), "foot": ("HEE", "TOE")}
+
+
 def segment_markers(segment: str, names) -> list[str]:
-    """Markers of `names` on `segment` (``pelvis``, ``femur_r``, ``tibia_torsioned_l``, ``foot_r``...)."""
+    """Markers of `names` that judge `segment`'s frame (``pelvis``, ``femur_r``, ``tibia_torsioned_l``, ``foot_r``...).
+
+    The segment's bone markers (`SEGMENT_MARKERS`) other than those the chains build its frame from
+    (`FRAME_MARKERS`), or all of them when fewer than two others are present (plain Plug-in-Gait sets).
+    """
     names = set(names)
     if segment == "pelvis":
         return [m for m in SEGMENT_MARKERS["pelvis"] if m in names]
     kind, side = segment.rsplit("_", 1)
     kind = "tibia" if kind.startswith("tibia") else kind
     S = side.upper()
-    return [S + m for m in SEGMENT_MARKERS.get(kind, ()) if S + m in names]
+    marks = [S + m for m in SEGMENT_MARKERS.get(kind, ()) if S + m in names]
+    held_out = [m for m in marks if m[1:] not in FRAME_MARKERS.get(kind, ())]
+    return held_out if len(held_out) >= 2 else marks
 
 
 def chain_residuals(segments: dict, trial: MarkerTrial, static_segments: dict, static: MarkerTrial) -> dict:
