@@ -141,7 +141,8 @@ PIG_ANKLE_AXIS_SD_DEG = 6.0
 #: pelvic tissue measured (12 subjects with the skin label, 24 legs) and with the prior tissue only
 #: (`MRI_CENTRE_COV_SCALE`, 8 bone-only subjects, 16 legs: the MRI knee and ankle are then worse, 1.4 / 1.0 mm
 #: median instead of 0.4 / 0.6 mm).  A registration that takes a fused centre as its anchor gets it back on the
-#: unscaled (marker-noise) scale.
+#: unscaled (marker-noise) scale.  Phantom-calibrated (exact marker placement, no posture change), like the hip
+#: scales: use 1.0 for the MRI scales on real data until calibrated there.
 PIG_CENTRE_SD = {"knee": 0.0051, "ankle": 0.0083}
 MRI_CENTRE_COV_SCALE = {"knee": 0.14, "ankle": 0.12}
 MRI_CENTRE_COV_SCALE_MEASURED = {"knee": 0.017, "ankle": 0.050}
