@@ -491,19 +491,29 @@ def _angle_deg(u, v) -> float:
     return float(np.degrees(np.arccos(min(1.0, c))))
 
 
-def pelvis_skin(inputs: SubjectInputs, surfaces: dict, lm_json: dict) -> dict:
+def _label_volume(inputs: SubjectInputs):
+    """The subject's label volume (`personalize.io.LabelVolume`), or None when the bones are a mesh folder."""
+    from .io import is_label_volume_path, read_label_volume
+
+    src = Path(inputs.bones)
+    if not (src.is_file() and is_label_volume_path(src)):
+        return None
+    return read_label_volume(src, inputs.label_map)
+
+
+def pelvis_skin(inputs: SubjectInputs, surfaces: dict, lm_json: dict, volume=None) -> dict:
     """Tissue under the pelvic markers (`personalize.skin.measure_pelvis_skin`) when the label volume names a
-    body/skin label; {} for bone-only volumes and mesh folders (the population prior is then used)."""
-    from .io import is_label_volume_path, read_label_volume, read_tissue_label
+    body/skin label; {} for bone-only volumes and mesh folders (the population prior is then used).
+
+    `volume`: the subject's label volume when already read (else read here)."""
+    from .io import read_tissue_label
     from .skin import measure_pelvis_skin
 
-    src = inputs.bones
-    if not (Path(src).is_file() and is_label_volume_path(src)) or "pelvis" not in surfaces:
+    if "pelvis" not in surfaces or read_tissue_label(inputs.label_map) is None:
         return {}
-    lmap = inputs.label_map if inputs.label_map is not None else None
-    if read_tissue_label(lmap) is None:
+    vol = volume if volume is not None else _label_volume(inputs)
+    if vol is None:
         return {}
-    vol = read_label_volume(src, lmap)
     return measure_pelvis_skin(vol, lm_json, surfaces["pelvis"].mesh)
 
 
@@ -1169,13 +1179,18 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
     from .model_builder import build_personal_model, save_model_json, save_model_osim, write_meshes
     from .parameter_fusion import fuse_knee_standing_translation, fuse_segment_lengths
     from .registration import static_marker_positions
-    from .surfaces import load_bones
+    from .surfaces import load_bones, surfaces_from_labels
 
     say = progress or (lambda m: None)
     say("reading inputs")
     inputs = find_inputs(subject_dir)
     say(f"bone surfaces from {inputs.bones.name}")
-    surfaces = load_bones(inputs.bones, inputs.label_map, seed=seed, progress=lambda b: say(f"surface {b}"))
+    # a label volume is read once: the bone surfaces and the soft-tissue measurement both use it
+    volume = _label_volume(inputs)
+    if volume is not None:
+        surfaces = surfaces_from_labels(volume, seed=seed, progress=lambda b: say(f"surface {b}"))
+    else:
+        surfaces = load_bones(inputs.bones, inputs.label_map, seed=seed, progress=lambda b: say(f"surface {b}"))
     bone_sides = {s for s in ("r", "l") if f"femur_{s}" in surfaces and f"tibia_{s}" in surfaces}
     if "pelvis" not in surfaces:
         raise InputError(inputs.bones, "no pelvis among the bones: the hip centres cannot be registered")
@@ -1189,7 +1204,10 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
     joints, dropped = joints_from_landmarks(ls)
     lm_json = ls.to_json()
     j_json = {k: v.to_json() for k, v in joints.items()}
-    est = estimate_joints(inputs, surfaces, lm_json, j_json, say, dropped)
+    say("measuring the soft tissue over the pelvic landmarks")
+    skin = pelvis_skin(inputs, surfaces, lm_json, volume)
+    del volume
+    est = estimate_joints(inputs, surfaces, lm_json, j_json, say, dropped, skin=skin)
     static_pos = static_marker_positions(inputs.static)
     say("building the model")
     params = _subject_parameters(inputs, est, static_pos)
