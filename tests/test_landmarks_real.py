@@ -91,3 +91,45 @@ def test_tlem2_both_sides_detected_with_their_side(shared_data, side):
     for b in (f"tibia_{side}", f"talus_{side}"):
         assert "low_confidence" not in ls.bones[b].flags, (b, ls.bones[b].notes)
     assert "plafond_centre" in ls.bones[f"tibia_{side}"].landmarks
+
+
+def _ankle_in_talus_frame(bones, side, turn_deg, about):
+    """Ankle axis with the foot bones turned by `turn_deg` about `about` = (point, direction),
+    expressed back in the talus' own (unturned) frame."""
+    from scipy.spatial.transform import Rotation
+
+    p0, u0 = about
+    rot = Rotation.from_rotvec(np.radians(turn_deg) * u0)
+    turned = {}
+    for k, s in bones.items():
+        m = s.mesh
+        if k in (f"talus_{side}", f"calcn_{side}", f"toes_{side}"):
+            m = m.copy()
+            m.vertices = rot.apply(m.vertices - p0) + p0
+        turned[k] = m
+    ax = detect_landmarks(turned).bones[f"talus_{side}"].axes["ankle_axis"]
+    return rot.inv().apply(np.asarray(ax.point) - p0) + p0, rot.inv().apply(np.asarray(ax.direction))
+
+
+def test_icl_talar_dome_does_not_depend_on_the_scan_ankle_angle(shared_data, monkeypatch):
+    # the same talus scanned with the foot 15 deg more plantar- or dorsiflexed must give
+    # the same ankle axis in the talus: the dome is taken in the talus' neutral pose
+    from personalize.landmarks import talus as talus_mod
+    from personalize.surfaces import load_bones
+
+    bones = load_bones(shared_data / "bones" / "ICL_MRI", bones=["tibia_r", "fibula_r", "talus_r", "calcn_r", "toes_r"])
+    ax = detect_landmarks(bones).bones["talus_r"].axes["ankle_axis"]
+    about = (np.asarray(ax.point), np.asarray(ax.direction))
+
+    def spread(turns):
+        res = [_ankle_in_talus_frame(bones, "r", t, about) for t in turns]
+        move = max(np.linalg.norm(p - res[0][0]) for p, _ in res)
+        ang = max(np.degrees(np.arccos(min(1.0, abs(u @ res[0][1])))) for _, u in res)
+        return move * 1e3, ang
+
+    move, ang = spread((-15, 0, 15))
+    assert move < 0.2 and ang < 0.2, (move, ang)
+    # the scan-pose contact (the previous default) is what this guards against
+    monkeypatch.setattr(talus_mod, "DOME_NEUTRAL_POSE", False)
+    move_scan, ang_scan = spread((-15, 0, 15))
+    assert move_scan > 1.0 and ang_scan > 1.0, (move_scan, ang_scan)

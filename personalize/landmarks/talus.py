@@ -6,8 +6,11 @@ anatomical positions, so the talar dome is the part of the talus facing the
 tibia and the posterior facet the part facing the calcaneus):
 
 * dome: talus vertices whose normal points at the tibia within a gap of a few
-  millimetres; alone, the largest convex cylindrical patch found by Hough
-  voting along the normals;
+  millimetres, taken with the talus turned about the ankle axis to its
+  neutral pose (its own superior, away from the calcaneus, under the tibia's)
+  so that the ankle angle of the foot in the scanner does not choose the part
+  of the trochlea that is fitted; alone, the largest convex cylindrical patch
+  found by Hough voting along the normals;
 * talar head (talonavicular surface): the convex sphere-like end of the bone
   farthest in front of the dome along the long axis;
 * posterior talocalcaneal facet: the concave inferior facet of the body
@@ -56,6 +59,13 @@ DOME_MIN_UP_COS = 0.3
 #: picks the quadrilateral's superior edge when known.
 DOME_METHOD = "contact"
 DOME_STAPLE_OPTIONS: dict = {}
+#: dome contact taken with the talus turned about the ankle axis to its neutral pose
+#: (its own superior, opposite the talocalcaneal contact, under the tibia's): the
+#: selection then no longer depends on the ankle angle the foot had in the scanner
+#: (on ICL-MRI, +-15 deg of scan ankle angle moved the scan-pose dome 2.7 mm / 2.6 deg)
+DOME_NEUTRAL_POSE = True
+#: neutral-pose re-selections (each refits the axis the next turn is made about)
+DOME_NEUTRAL_ITERATIONS = 2
 
 
 def _near(surface: Surface, other: Surface | None, gap: float) -> np.ndarray | None:
@@ -95,11 +105,15 @@ def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | No
     # ---- dome ----------------------------------------------------------------------
     dome_mask = None
     near_tib = _near(surface, tibia, DOME_CONTACT_GAP)
-    if up_hint is None and calcaneus is not None:
-        # the talus sits on the calcaneus: superior = away from the calcaneal contact
+    tibia_up = up_hint
+    talus_up = None
+    if calcaneus is not None:
+        # the talus sits on the calcaneus: its own superior is away from the calcaneal contact
         nc = _near(surface, calcaneus, 0.006)
         if nc is not None and nc.sum() >= 20:
-            up_hint = unit(-(A[nc] @ Nrm[nc]))
+            talus_up = unit(-(A[nc] @ Nrm[nc]))
+    if up_hint is None:
+        up_hint = talus_up
     if near_tib is not None and up_hint is not None:
         near_tib &= Nrm @ up_hint > DOME_MIN_UP_COS
     if near_tib is not None and near_tib.sum() >= 30:
@@ -143,6 +157,15 @@ def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | No
         except FitError as exc:
             res.flag(FLAG_LOW_CONFIDENCE, f"talar dome cylinder (tibia contact): {exc}")
             fit = None
+        if fit is not None and DOME_NEUTRAL_POSE:
+            if talus_up is None or tibia_up is None:
+                res.notes.append(f"{name}: talar dome taken at the scan's ankle angle (no "
+                                 f"{'calcaneus' if talus_up is None else 'tibial frame'} for the neutral pose)")
+            else:
+                try:
+                    fit, sel, p, u = _neutral_dome(surface, tibia, fit, p, u, talus_up, tibia_up)
+                except FitError as exc:
+                    res.notes.append(f"{name}: talar dome at the scan's ankle angle kept ({exc})")
     if fit is None:
         res.flag(FLAG_LOW_CONFIDENCE, "talar dome found without the tibia" if tibia is None else "talar dome from shape only")
         peaks = hough_centres(V, Nrm, DOME_RADII, inward=False, tol=0.0015, n_peaks=3, min_separation=0.01)
@@ -233,6 +256,50 @@ def _normal_line_sphere(P: np.ndarray, N: np.ndarray, w: np.ndarray) -> NormalLi
     r = float(np.average(d, weights=w))
     rms = float(np.sqrt(np.average((d - r) ** 2, weights=w)))
     return NormalLineSphere(c, r, rms, 0.5 * (cov + cov.T) + 1e-14 * np.eye(3), len(P))
+
+
+def _neutral_dome(surface: Surface, tibia: Surface, fit, p, u, talus_up, tibia_up):
+    """Talar dome re-selected with the talus in its neutral pose against the tibia.
+
+    The talus is turned about the current dome axis :math:`(p, u)` by the
+    angle that brings its own superior direction (``talus_up``, projected on
+    the plane normal to :math:`u`) onto the tibia's (``tibia_up``); the dome
+    is the part of the turned talus facing the tibia within
+    ``DOME_CONTACT_GAP``, fitted on the talus as it lies in the scan.  The
+    selection is then a property of the two bones' shapes, not of the
+    ankle angle at which the foot lay in the scanner.
+
+    Returns
+    -------
+    fit, sel, p, u : as ``refine_cylinder`` (scan frame)
+
+    Raises
+    ------
+    FitError
+        If the turned talus does not meet the tibia or the dome does not refit.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from personalize.fitting import fit_cylinder
+
+    V, Nrm = surface.vertices, surface.normals
+    for _ in range(DOME_NEUTRAL_ITERATIONS):
+        a, b = perpendicular(talus_up, u), perpendicular(tibia_up, u)
+        if np.linalg.norm(a) < 0.3 or np.linalg.norm(b) < 0.3:
+            raise FitError("the talus' or the tibia's superior direction lies along the ankle axis")
+        a, b = unit(a), unit(b)
+        rot = Rotation.from_rotvec(np.arctan2(np.cross(a, b) @ u, a @ b) * u)
+        turned = Surface(rot.apply(V - p) + p, surface.faces, rot.apply(Nrm), surface.areas, surface.closed)
+        near = _near(turned, tibia, DOME_CONTACT_GAP) & (turned.normals @ tibia_up > DOME_MIN_UP_COS)
+        patches = largest_patch(surface, near, 1) if near.sum() >= 30 else []
+        if not patches or patches[0].sum() < 30:
+            raise FitError("the talus turned to its neutral pose does not meet the tibia")
+        mask = patches[0]
+        f0 = fit_cylinder(V[mask], normals=Nrm[mask], axis_hint=u, require_convergence=False)
+        fit, sel, p, u = refine_cylinder(V, Nrm, f0.point, orient(unit(np.asarray(f0.axis, float)), u), f0.radius,
+                                         band=max(0.0015, 0.08 * f0.radius), min_cos=0.6,
+                                         mask=_dome_zone(V, Nrm, f0, talus_up) & mask)
+    return fit, sel, p, u
 
 
 def _dome_zone(V, Nrm, f0, up_hint):
