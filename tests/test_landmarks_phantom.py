@@ -255,3 +255,16 @@ def test_truncated_tibia_under_the_femur_keeps_its_cut():
     # proximal axis points from the cut towards the knee
     y = res.frames["anatomical"]["rotation"][:, 1]
     assert (knee - res.axes["shaft_axis"].point) @ y > 0
+
+
+def test_juvenile_bones_meet_the_adult_limits():
+    # a 1.2 m child: small bones, the femoral anteversion and neck-shaft angle of
+    # a young child, little tibial torsion; detectors have no adult-size assumption
+    # beyond their radius ranges (checked here at their small end)
+    params = dict(stature=1.2, femoral_anteversion_deg=35.0, neck_shaft_deg=145.0, tibial_torsion_deg=12.0)
+    case = phantom_case(0, voxel=(1e-3, 1e-3, 1e-3), noise=0.0, params=params)
+    for metric in ("hip_centre", "knee_centre", "knee_axis", "ankle_centre", "ankle_axis", "subtalar_axis",
+                   "ground_contacts"):
+        err = case["errors"][metric]
+        assert err <= TOLERANCES[metric], f"{metric} error {err:.3f} > {TOLERANCES[metric]}"
+    assert not any(case["flags"].values()), case["flags"]
