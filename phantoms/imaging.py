@@ -192,7 +192,7 @@ class SkinField:
 def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed: int = 0, fov=None,
                  bones: Iterable[str] | None = None, supersample: bool = True,
                  progress: Callable[[str], None] | None = None, skin: bool = False,
-                 tissue_seed: int | None = None):
+                 tissue_seed: int | None = None, physes: float = 0.0):
     """Rasterise phantom bones into an integer label volume.
 
     Parameters
@@ -217,6 +217,9 @@ def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed
     tissue_seed : int, optional
         Seed of the subject's soft-tissue draw (`phantoms.skeleton.pelvis_tissue_thickness`;
         default `seed`): the motion trials' seed, so that the markers sit on this skin.
+    physes : float
+        Width (m) of open growth plates left unlabelled, as in a child's bone
+        segmentation (see `physis_slabs`); 0 (default): fused adult bones.
 
     Returns
     -------
@@ -240,6 +243,9 @@ def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed
     # padding independent of the noise level so clean and noisy volumes share one grid
     boxes = {b: ph.bounds(b, pad=3 * float(h.max())) for b in names}
     skin_field = None
+    if not (0.0 <= float(physes) <= 0.01):
+        raise InputError("physes", f"growth-plate width {physes} m is outside 0..0.01 m")
+    slabs = physis_slabs(ph) if physes > 0 else {}
     if skin and "pelvis" in names:
         skin_field = SkinField.of(ph, seed if tissue_seed is None else tissue_seed)
         boxes_all = dict(boxes, skin=skin_field.box(ph, float(h.max())))
@@ -302,6 +308,11 @@ def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed
                 inside[tuple(nidx[sel].T)] = frac >= 0.5
         if noise > 0:
             _add_noise(inside, d, h, noise, rng)
+        for centre, normal, reach in slabs.get(b, ()):
+            idx = np.column_stack(np.nonzero(inside))
+            q = sub_origin + idx * h - centre
+            cut = (np.abs(q @ normal) < 0.5 * physes) & (np.linalg.norm(q, axis=1) < reach)
+            inside[tuple(idx[cut].T)] = False
         lab = label_map[b]
         region = labels[a[0]:c[0], a[1]:c[1], a[2]:c[2]]
         conflict = inside & (region != 0)
@@ -332,6 +343,41 @@ def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed
     affine[:3, :3] = np.diag(h * 1000.0)
     affine[:3, 3] = origin * 1000.0
     return labels, affine, label_map
+
+
+def physis_slabs(ph: Phantom) -> dict[str, list[tuple[np.ndarray, np.ndarray, float]]]:
+    """Growth plates of a child's femur and tibia: ``bone -> [(centre, normal, reach)]`` (scanner, m).
+
+    A plate is the slab ``|(x - centre) . normal| < w / 2`` within ``reach`` of
+    its centre: the capital femoral physis across the neck, 0.4 head radii
+    from the head centre towards the shaft (reach 1.3 head radii, so the
+    trochanter stays whole); the distal femoral physis 1.1 condyle radii
+    above the intercondylar midpoint; the proximal tibial physis 0.9 and the
+    distal 0.5 condyle radii from the plateau and plafond centres, all across
+    the shaft axis (reach: the whole bone).
+    """
+    t = ph.truth()["landmarks"]["bones"]
+    out: dict[str, list] = {}
+    for s in ("r", "l"):
+        fem, tib = t.get(f"femur_{s}"), t.get(f"tibia_{s}")
+        if fem is None or tib is None:
+            continue
+        L = lambda bone, k: np.asarray(bone["landmarks"][k]["position"], float)  # noqa: E731
+        head, knee = L(fem, "femoral_head_centre"), L(fem, "intercondylar_midpoint")
+        r_head = float(fem["scalars"]["femoral_head_radius"]["value"])
+        r_cond = float(fem["scalars"]["medial_condyle_a"]["value"])
+        neck = np.asarray(fem["axes"]["neck_axis"]["direction"], float)
+        neck = neck if neck @ (knee - head) > 0 else -neck        # towards the shaft
+        up_f = np.asarray(fem["axes"]["shaft_axis"]["direction"], float)
+        up_f = up_f if up_f @ (head - knee) > 0 else -up_f
+        plateau, plafond = L(tib, "plateau_centre"), L(tib, "plafond_centre")
+        up_t = plateau - plafond
+        up_t /= np.linalg.norm(up_t)
+        out[f"femur_{s}"] = [(head + 0.4 * r_head * neck, neck, 1.3 * r_head),
+                             (knee + 1.1 * r_cond * up_f, up_f, np.inf)]
+        out[f"tibia_{s}"] = [(plateau - 0.9 * r_cond * up_t, up_t, np.inf),
+                             (plafond + 0.5 * r_cond * up_t, up_t, np.inf)]
+    return out
 
 
 def _add_noise(inside: np.ndarray, d: np.ndarray, h: np.ndarray, level: float, rng: np.random.Generator) -> None:

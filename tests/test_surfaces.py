@@ -7,6 +7,7 @@ from pathlib import Path
 
 import nibabel as nib
 import numpy as np
+import scipy.ndimage as ndi
 import pytest
 import trimesh
 
@@ -119,6 +120,43 @@ def test_clean_mask_reports_islands_and_fills_holes():
     assert rep["islands_removed"] == [{"voxels": 12}]
     assert rep["holes_filled_voxels"] == 125
     assert np.array_equal(cleaned, mask)
+
+
+def _rod_with_piece(gap_vox: int, contact: str, spacing=(1e-3, 1e-3, 1e-3)):
+    """A 60-voxel rod (radius 8) and a second piece beyond a `gap_vox` gap: an end cap
+    across the whole section ("physis") or a thin rod beside it touching one spot ("fibula")."""
+    i, j, k = np.indices((40, 40, 100))
+    rod = ((i - 20) ** 2 + (j - 20) ** 2 <= 64) & (k >= 10) & (k < 70)
+    if contact == "physis":
+        piece = ((i - 20) ** 2 + (j - 20) ** 2 <= 64) & (k >= 70 + gap_vox) & (k < 82 + gap_vox)
+    else:
+        piece = ((i - 20) ** 2 + (j - 31 - gap_vox) ** 2 <= 9) & (k >= 20) & (k < 90)
+    return rod, piece
+
+
+@pytest.mark.parametrize("gap_vox", [1, 2, 3])
+def test_clean_mask_joins_an_epiphysis_across_its_growth_plate(gap_vox):
+    rod, piece = _rod_with_piece(gap_vox, "physis")
+    cleaned, rep = clean_mask(rod | piece, spacing=(1e-3, 1e-3, 1e-3))
+    assert len(rep["epiphyses_joined"]) == 1 and rep["islands_removed"] == []
+    assert rep["epiphyses_joined"][0]["gap_m"] == pytest.approx((gap_vox + 1) * 1e-3)
+    lab, n = ndi.label(cleaned, structure=np.ones((3, 3, 3), bool))
+    assert n == 1
+    # the plate is filled across the section and nothing bulges out of the rod's cylinder
+    whole = rod | piece
+    whole[:, :, 70:70 + gap_vox] = rod[:, :, 10:10 + gap_vox]
+    assert np.array_equal(cleaned, whole)
+    # without the voxel size (or across a wider gap) the piece is an island
+    assert clean_mask(rod | piece)[1]["epiphyses_joined"] == []
+    assert clean_mask(rod | piece, spacing=(1e-3, 1e-3, 1e-3), physis_gap=0.5e-3)[1]["epiphyses_joined"] == []
+
+
+def test_clean_mask_does_not_join_a_neighbouring_bone_touching_at_one_spot():
+    # a fibula labelled with its tibia lies 1-3 mm from it along a narrow strip only
+    rod, piece = _rod_with_piece(1, "fibula")
+    cleaned, rep = clean_mask(rod | piece, spacing=(1e-3, 1e-3, 1e-3))
+    assert rep["epiphyses_joined"] == []
+    assert np.array_equal(cleaned, rod | piece)          # kept as a second component, not bridged
 
 
 def _write_nifti(path: Path, labels: np.ndarray, affine_m: np.ndarray):

@@ -64,10 +64,11 @@ def errors_against_truth(ls, joints: dict, truth: dict, side: str = "r") -> dict
 
 
 def phantom_case(seed: int, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, side: str = "r",
-                 bones=LEG_BONES, params: dict | None = None) -> dict:
+                 bones=LEG_BONES, params: dict | None = None, physes: float = 0.0) -> dict:
     """Rasterise, surface, detect; returns ``{"errors": ..., "flags": ..., "landmarks": LandmarkSet}``.
 
-    `params` overrides the phantom's anatomy (`phantoms.make_phantom` keywords, e.g. a validation spec's).
+    `params` overrides the phantom's anatomy (`phantoms.make_phantom` keywords, e.g. a validation spec's);
+    `physes` > 0 leaves a child's growth plates of that width (m) unlabelled (`phantoms.imaging.physis_slabs`).
     """
     from phantoms.anatomy import make_phantom
     from phantoms.imaging import label_volume
@@ -79,12 +80,12 @@ def phantom_case(seed: int, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, side: 
 
     ph = make_phantom(seed=seed, **(params or {}))
     names = [f"{b}_{side}" for b in bones]
-    labels, affine_mm, label_map = label_volume(ph, voxel=voxel, noise=noise, seed=seed, bones=names)
+    labels, affine_mm, label_map = label_volume(ph, voxel=voxel, noise=noise, seed=seed, bones=names, physes=physes)
     vol = LabelVolume(labels=labels, affine_m=np.diag([1e-3, 1e-3, 1e-3, 1.0]) @ affine_mm,
                       label_map=label_map, source=f"phantom seed {seed}")
     surfaces = surfaces_from_labels(vol, workers=1)
     ls = detect_landmarks(surfaces)
     joints, _ = joints_from_landmarks(ls)
-    return {"errors": errors_against_truth(ls, joints, ph.truth(), side),
+    return {"errors": errors_against_truth(ls, joints, ph.truth(), side), "surfaces": surfaces,
             "flags": {k: list(v.flags) for k, v in ls.bones.items()}, "landmarks": ls, "joints": joints,
             "meshes": {k: s.mesh for k, s in surfaces.items()}}
