@@ -133,3 +133,33 @@ def test_icl_talar_dome_does_not_depend_on_the_scan_ankle_angle(shared_data, mon
     monkeypatch.setattr(talus_mod, "DOME_NEUTRAL_POSE", False)
     move_scan, ang_scan = spread((-15, 0, 15))
     assert move_scan > 1.0 and ang_scan > 1.0, (move_scan, ang_scan)
+
+
+def test_icl_decimated_mesh_gives_the_same_joints(shared_data, monkeypatch):
+    # a "low-quality" mesh: ICL-MRI decimated to a quarter of its faces (median edge
+    # ~5 mm, dense where curved, sparse where flat); its long edges are split before
+    # detection, so the joints stay those of the full mesh
+    from types import SimpleNamespace
+
+    from personalize.landmarks import common
+    from personalize.surfaces import decimate, load_bones
+
+    names = ["femur_r", "tibia_r", "fibula_r", "talus_r", "calcn_r", "toes_r"]
+    bones = load_bones(shared_data / "bones" / "ICL_MRI", bones=names)
+    full = joints_from_landmarks(detect_landmarks(bones))[0]
+    ref = {k: SimpleNamespace(origin=np.asarray(v.origin), rotation=np.asarray(v.rotation)) for k, v in full.items()}
+    coarse = {k: decimate(b.mesh, len(b.mesh.faces) // 4) for k, b in bones.items()}
+
+    def differences():
+        ls = detect_landmarks(coarse)
+        return ls, compare_joints(joints_from_landmarks(ls)[0], ref, ["knee_r", "ankle_r", "subtalar_r"])
+
+    ls, d = differences()
+    assert any("coarse mesh" in n for n in ls.bones["femur_r"].notes)
+    assert d["knee_r"]["distance_mm"] < 1.0 and d["knee_r"]["angle_deg"] < 0.5, d
+    assert d["ankle_r"]["distance_mm"] < 1.0 and d["ankle_r"]["angle_deg"] < 1.0, d
+    assert d["subtalar_r"]["distance_mm"] < 2.0 and d["subtalar_r"]["angle_deg"] < 2.0, d
+    # detected on the decimated vertices as they are, the knee moves by millimetres
+    monkeypatch.setattr(common, "SUBDIVIDED_EDGE", 1.0)
+    _, d_raw = differences()
+    assert d_raw["knee_r"]["distance_mm"] > 1.5, d_raw

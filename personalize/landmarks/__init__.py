@@ -13,7 +13,7 @@ from kinematics.errors import FitError, InputError
 from personalize.bones import BONE_NAMES, canonical_bone_name
 
 from .common import (FLAG_LOW_CONFIDENCE, FLAG_NOT_CLOSED, FLAG_SIDE_MISMATCH, Axis,
-                     BoneLandmarks, Landmark, LandmarkSet, Surface, as_surface)
+                     BoneLandmarks, Landmark, LandmarkSet, Surface, as_surface, even_sampling)
 from .femur import detect_femur
 from .foot import detect_calcn, detect_toes
 from .patella import detect_patella
@@ -65,6 +65,7 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
         If no recognised bone is given.
     """
     surf: dict[str, Surface] = {}
+    sampling_notes: dict[str, str] = {}
     ls = LandmarkSet()
     for key, obj in bones.items():
         name = canonical_bone_name(str(key))
@@ -74,9 +75,13 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
         if name in surf:
             continue
         try:
+            obj, note = even_sampling(obj, name)
             surf[name] = as_surface(obj, name)
         except InputError as exc:
             ls.rejected[str(key)] = exc.problem
+            continue
+        if note:
+            sampling_notes[name] = note
     if not surf:
         raise InputError(None, "no recognisable bone surfaces (expected names like "
                                + ", ".join(BONE_NAMES[:4]) + ", ...)")
@@ -89,6 +94,8 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
         except FitError as exc:
             res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
             res.flag(FLAG_LOW_CONFIDENCE, f"{name}: detection failed ({exc})")
+        if name in sampling_notes:
+            res.notes.append(sampling_notes[name])
         if not surf[name].closed:
             res.flag(FLAG_NOT_CLOSED, f"{name}: surface is not closed; volume-based quantities approximate")
         _check_side(res, name)

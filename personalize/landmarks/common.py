@@ -173,6 +173,50 @@ class Surface:
         return t
 
 
+#: bone mesh edges longer than this (m) are split at their midpoints before detection:
+#: the detectors' fits and votes count vertices, so a decimated ("low-quality") mesh's
+#: uneven sampling (dense where curved, sparse where flat) would weight its surface
+#: unevenly; splitting leaves the surface itself unchanged
+SUBDIVIDED_EDGE = 0.003
+#: a note is added when more than this fraction of the edges had to be split
+COARSE_EDGE_FRACTION = 0.05
+
+
+def even_sampling(obj, name: str = "bone"):
+    """The bone mesh with its edges longer than `SUBDIVIDED_EDGE` split, and a note when it was coarse.
+
+    Returns ``(obj, None)`` unchanged when no edge is that long (or for a
+    `Surface`).  Midpoint subdivision keeps every point of the surface where
+    it was (the faceted surface is the same point set), so results stay
+    rigid-motion and mirror equivariant; only the sampling of the detectors'
+    vertex sets is evened out.
+    """
+    if isinstance(obj, Surface):
+        return obj, None
+    mesh = getattr(obj, "mesh", obj)
+    try:
+        edges = np.asarray(mesh.edges_unique_length, float)
+    except (AttributeError, ValueError, IndexError):
+        return obj, None
+    if len(edges) == 0 or not np.all(np.isfinite(edges)) or np.median(edges) > 0.05:
+        return obj, None                     # empty, broken or in millimetres: as_surface says so
+    long = float(np.mean(edges > SUBDIVIDED_EDGE))
+    if long == 0.0:
+        return obj, None
+    import trimesh
+    from trimesh.remesh import subdivide_to_size
+
+    v, f = subdivide_to_size(np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64),
+                             max_edge=SUBDIVIDED_EDGE, max_iter=12)
+    out = trimesh.Trimesh(v, f, process=False)
+    trimesh.grouping.merge_vertices(out)   # an edge shared by two faces gets one midpoint
+    note = None
+    if long > COARSE_EDGE_FRACTION:
+        note = (f"{name}: coarse mesh ({100 * long:.0f} % of edges longer than {SUBDIVIDED_EDGE * 1e3:.0f} mm, "
+                f"median {np.median(edges) * 1e3:.1f} mm): edges split before detection (surface unchanged)")
+    return out, note
+
+
 def as_surface(obj, name: str = "bone") -> Surface:
     """Wrap a trimesh, a `BoneSurface` (``.mesh``) or a Surface.
 
