@@ -175,7 +175,7 @@ def ankle_diagnostics() -> dict:
         out["profile_mm"][name] = prof
         print(f"  {name:7s} " + " ".join(f"{a:+d}:{r:.1f}" for a, r in prof.items()))
     print("sensitivity of our ankle (vs manual) to the dome seed's parameters (x0.8, x1, x1.2):")
-    for pname in ("DOME_CONTACT_GAP", "DOME_MIN_UP_COS"):
+    for pname in ("DOME_CONTACT_GAP", "DOME_CONTACT_MARGIN", "DOME_MIN_UP_COS"):
         base = getattr(T, pname)
         rows = []
         try:
@@ -195,32 +195,34 @@ def ankle_diagnostics() -> dict:
     if folder.is_dir():
         # no reference model: change of the ankle centre and axis from the nominal setting
         tl = load_bones(folder)
-        base = T.DOME_CONTACT_GAP
-        nominal, rows = None, []
-        try:
-            for m in (1.0, 0.8, 1.2):
-                T.DOME_CONTACT_GAP = base * m
-                lsm = detect_landmarks(tl)
-                J, _ = joints_from_landmarks(lsm)
-                nominal = nominal or J
-                row = {"value": base * m}
-                for s in ("r", "l"):
-                    a, n0 = J.get(f"ankle_{s}"), nominal.get(f"ankle_{s}")
-                    if a is None or n0 is None:
-                        continue
-                    cz = abs(float(a.rotation[:, 2] @ n0.rotation[:, 2]))
-                    row[s] = {"shift_mm": float(np.linalg.norm(a.origin - n0.origin) * 1e3),
-                              "axis_change_deg": float(np.degrees(np.arccos(min(1.0, cz)))),
-                              "radius_mm": lsm.bones[f"talus_{s}"].scalars.get("talar_dome_radius", np.nan) * 1e3}
-                rows.append(row)
-        finally:
-            T.DOME_CONTACT_GAP = base
-        out["sensitivity_tlem2"] = rows
-        print("TLEM2-MRI: change of the ankle from the nominal DOME_CONTACT_GAP (shift mm / axis deg / radius mm):")
-        for row in rows:
-            print(f"  {row['value']:.4g}: " + " | ".join(
-                f"{s} {row[s]['shift_mm']:.2f} / {row[s]['axis_change_deg']:.2f} / {row[s]['radius_mm']:.1f}"
-                for s in ("r", "l") if s in row))
+        out["sensitivity_tlem2"] = {}
+        for pname in ("DOME_CONTACT_GAP", "DOME_CONTACT_MARGIN"):
+            base = getattr(T, pname)
+            nominal, rows = None, []
+            try:
+                for m in (1.0, 0.8, 1.2):
+                    setattr(T, pname, base * m)
+                    lsm = detect_landmarks(tl)
+                    J, _ = joints_from_landmarks(lsm)
+                    nominal = nominal or J
+                    row = {"value": base * m}
+                    for s in ("r", "l"):
+                        a, n0 = J.get(f"ankle_{s}"), nominal.get(f"ankle_{s}")
+                        if a is None or n0 is None:
+                            continue
+                        cz = abs(float(a.rotation[:, 2] @ n0.rotation[:, 2]))
+                        row[s] = {"shift_mm": float(np.linalg.norm(a.origin - n0.origin) * 1e3),
+                                  "axis_change_deg": float(np.degrees(np.arccos(min(1.0, cz)))),
+                                  "radius_mm": lsm.bones[f"talus_{s}"].scalars.get("talar_dome_radius", np.nan) * 1e3}
+                    rows.append(row)
+            finally:
+                setattr(T, pname, base)
+            out["sensitivity_tlem2"][pname] = rows
+            print(f"TLEM2-MRI: change of the ankle from the nominal {pname} (shift mm / axis deg / radius mm):")
+            for row in rows:
+                print(f"  {row['value']:.4g}: " + " | ".join(
+                    f"{s} {row[s]['shift_mm']:.2f} / {row[s]['axis_change_deg']:.2f} / {row[s]['radius_mm']:.1f}"
+                    for s in ("r", "l") if s in row))
     return out
 
 

@@ -163,3 +163,26 @@ def test_icl_decimated_mesh_gives_the_same_joints(shared_data, monkeypatch):
     monkeypatch.setattr(common, "SUBDIVIDED_EDGE", 1.0)
     _, d_raw = differences()
     assert d_raw["knee_r"]["distance_mm"] > 1.5, d_raw
+
+
+def test_tlem2_talar_dome_follows_the_joint_space(shared_data):
+    # a segmentation that keeps (part of) the cartilage narrows the joint space: with
+    # the talus 2 mm closer to the tibia the dome contact is taken within the new joint
+    # space plus the same margin, so the ankle stays put (a fixed 6 mm gap moved it 5.6 mm)
+    from personalize.surfaces import load_bones
+
+    bones = load_bones(shared_data / "bones" / "TLEM2_MRI", bones=["tibia_r", "talus_r", "calcn_r", "toes_r"])
+    ls = detect_landmarks(bones)
+    up = ls.bones["tibia_r"].frames["anatomical"]["rotation"][:, 1]
+    base = ls.bones["talus_r"].axes["ankle_axis"]
+    moved = {}
+    for k, b in bones.items():
+        m = b.mesh
+        if k != "tibia_r":
+            m = m.copy()
+            m.vertices = m.vertices + 0.002 * up
+        moved[k] = m
+    a = detect_landmarks(moved).bones["talus_r"].axes["ankle_axis"]
+    shift = np.linalg.norm(np.asarray(a.point) - 0.002 * up - np.asarray(base.point)) * 1e3
+    turn = np.degrees(np.arccos(min(1.0, abs(float(np.dot(a.direction, base.direction))))))
+    assert shift < 0.5 and turn < 0.5, (shift, turn)

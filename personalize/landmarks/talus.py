@@ -66,6 +66,12 @@ DOME_STAPLE_OPTIONS: dict = {}
 DOME_NEUTRAL_POSE = True
 #: neutral-pose re-selections (each refits the axis the next turn is made about)
 DOME_NEUTRAL_ITERATIONS = 2
+#: neutral-pose contact: talus points facing the tibia within the joint space (5th
+#: percentile of those distances: cartilage, or none in a bone-and-cartilage segmentation)
+#: plus this margin, m (None: the fixed DOME_CONTACT_GAP).  On TLEM2-MRI (joint space
+#: 1.4 mm against ICL's 3.1) +-20 % on the fixed gap moved the ankle up to 4.9 mm, on
+#: this margin 0.8 mm (benchmarks/landmarks.py)
+DOME_CONTACT_MARGIN: float | None = 0.003
 
 
 def _near(surface: Surface, other: Surface | None, gap: float) -> np.ndarray | None:
@@ -264,8 +270,8 @@ def _neutral_dome(surface: Surface, tibia: Surface, fit, p, u, talus_up, tibia_u
     The talus is turned about the current dome axis :math:`(p, u)` by the
     angle that brings its own superior direction (``talus_up``, projected on
     the plane normal to :math:`u`) onto the tibia's (``tibia_up``); the dome
-    is the part of the turned talus facing the tibia within
-    ``DOME_CONTACT_GAP``, fitted on the talus as it lies in the scan.  The
+    is the part of the turned talus facing the tibia within the joint space
+    plus ``DOME_CONTACT_MARGIN``, fitted on the talus as it lies in the scan.  The
     selection is then a property of the two bones' shapes, not of the
     ankle angle at which the foot lay in the scanner.
 
@@ -290,7 +296,17 @@ def _neutral_dome(surface: Surface, tibia: Surface, fit, p, u, talus_up, tibia_u
         a, b = unit(a), unit(b)
         rot = Rotation.from_rotvec(np.arctan2(np.cross(a, b) @ u, a @ b) * u)
         turned = Surface(rot.apply(V - p) + p, surface.faces, rot.apply(Nrm), surface.areas, surface.closed)
-        near = _near(turned, tibia, DOME_CONTACT_GAP) & (turned.normals @ tibia_up > DOME_MIN_UP_COS)
+        gap = DOME_CONTACT_GAP
+        if DOME_CONTACT_MARGIN is not None:
+            up_facing = turned.normals @ tibia_up > DOME_MIN_UP_COS
+            d, j = tibia.tree().query(turned.vertices[up_facing], distance_upper_bound=0.015)
+            ok = np.isfinite(d)
+            if ok.sum() >= 30:
+                vec = tibia.vertices[j[ok]] - turned.vertices[up_facing][ok]
+                fac = np.einsum("ij,ij->i", vec, turned.normals[up_facing][ok]) > 0.3 * np.maximum(d[ok], 1e-9)
+                if fac.sum() >= 30:
+                    gap = float(np.percentile(d[ok][fac], 5)) + DOME_CONTACT_MARGIN
+        near = _near(turned, tibia, gap) & (turned.normals @ tibia_up > DOME_MIN_UP_COS)
         patches = largest_patch(surface, near, 1) if near.sum() >= 30 else []
         if not patches or patches[0].sum() < 30:
             raise FitError("the talus turned to its neutral pose does not meet the tibia")
