@@ -23,10 +23,12 @@
    0.5 x 0.5 x 2 mm with segmentation noise (95th percentiles; slow).
 5. ``--validation N``: both legs of the N subjects ``personalize validate --seed 2026``
    draws (random anatomy, anisotropic voxels up to 3 mm, segmentation noise).
+6. ``--robustness``: the foot's angle in the scanner, the segmentation's joint space,
+   decimated meshes and a child phantom with open growth plates (see `robustness`).
 
 Usage::
 
-    python benchmarks/landmarks.py [--repeat 3] [--phantom] [--validation 20] [--json benchmarks/results/landmarks.json]
+    python benchmarks/landmarks.py [--repeat 3] [--phantom] [--validation 20] [--robustness] [--json benchmarks/results/landmarks.json]
 """
 from __future__ import annotations
 
@@ -393,6 +395,108 @@ def validation_subjects(n: int, seed: int = 2026) -> dict:
     return {"per_leg": rows, "summary": summary, "seed": seed}
 
 
+def _ankle_change(a, b, back=None) -> tuple[float, float]:
+    """Distance (mm) and angle (deg) between two ankle axes; `back` maps `a` into `b`'s frame first."""
+    pa, ua = np.asarray(a.point, float), np.asarray(a.direction, float)
+    if back is not None:
+        pa, ua = back(pa, ua)
+    d = float(np.linalg.norm(pa - np.asarray(b.point, float)) * 1e3)
+    return d, float(np.degrees(np.arccos(min(1.0, abs(float(ua @ np.asarray(b.direction, float)))))))
+
+
+def robustness() -> dict:
+    """What users report breaks such tools, measured on the real bones and a child phantom.
+
+    * the foot's angle in the scanner: ICL-MRI foot bones (talus, calcaneus, toes) turned
+      +-5/10/15 deg about the ankle axis relative to the tibia; ankle change in the talus frame;
+    * the joint space of the segmentation: the TLEM2-MRI tali moved 1 and 2 mm towards the
+      tibia (a segmentation keeping cartilage);
+    * low-quality meshes: ICL-MRI decimated to 1/2, 1/4, 1/10 of its faces (pymeshlab
+      quadric); joints against those of the full meshes;
+    * children's bones: a 1.2 m phantom (anteversion 35, neck-shaft 145, tibial torsion 12
+      deg), 1 mm voxels, with 1.5 mm open growth plates.
+    """
+    from scipy.spatial.transform import Rotation
+    from types import SimpleNamespace
+
+    from personalize.frames import joints_from_landmarks
+    from personalize.landmarks import detect_landmarks
+    from personalize.landmarks.evaluate import TOLERANCES, phantom_case
+    from personalize.reference_models import compare_joints
+    from personalize.surfaces import decimate, load_bones
+
+    out: dict = {}
+    foot = ("talus", "calcn", "toes")
+    icl = load_bones(DATA / "bones" / "ICL_MRI")
+    ax0 = detect_landmarks(icl).bones["talus_r"].axes["ankle_axis"]
+    p0, u0 = np.asarray(ax0.point), np.asarray(ax0.direction)
+    rows = {}
+    for deg in (-15, -10, -5, 5, 10, 15):
+        rot = Rotation.from_rotvec(np.radians(deg) * u0)
+        turned = {}
+        for k, b in icl.items():
+            m = b.mesh
+            if k.split("_")[0] in foot:
+                m = m.copy()
+                m.vertices = rot.apply(m.vertices - p0) + p0
+            turned[k] = m
+        a = detect_landmarks(turned).bones["talus_r"].axes["ankle_axis"]
+        rows[deg] = _ankle_change(a, ax0, back=lambda p, u, rot=rot: (rot.inv().apply(p - p0) + p0, rot.inv().apply(u)))
+    out["scan_ankle_angle"] = rows
+    print("ICL-MRI foot turned about the ankle axis in the scan (deg): ankle change in the talus frame (mm / deg)")
+    print("  " + "; ".join(f"{k:+d}: {d:.2f} / {a:.2f}" for k, (d, a) in rows.items()))
+
+    folder = DATA / "bones" / "TLEM2_MRI"
+    if folder.is_dir():
+        out["joint_space"] = {}
+        print("TLEM2-MRI talus moved towards the tibia (mm): ankle change in the talus frame (mm / deg)")
+        for s in ("r", "l"):
+            bones = load_bones(folder, bones=[f"{b}_{s}" for b in ("tibia",) + foot])
+            ls = detect_landmarks(bones)
+            up = ls.bones[f"tibia_{s}"].frames["anatomical"]["rotation"][:, 1]
+            base = ls.bones[f"talus_{s}"].axes["ankle_axis"]
+            rows = {}
+            for shift in (1e-3, 2e-3):
+                moved = {}
+                for k, b in bones.items():
+                    m = b.mesh
+                    if not k.startswith("tibia"):
+                        m = m.copy()
+                        m.vertices = m.vertices + shift * up
+                    moved[k] = m
+                a = detect_landmarks(moved).bones[f"talus_{s}"].axes["ankle_axis"]
+                rows[shift * 1e3] = _ankle_change(a, base, back=lambda p, u, sh=shift: (p - sh * up, u))
+            out["joint_space"][s] = rows
+            print(f"  {s}: " + "; ".join(f"{k:.0f}: {d:.2f} / {a:.2f}" for k, (d, a) in rows.items()))
+
+    names = ["hip_r", "knee_r", "ankle_r", "subtalar_r"]
+    full = joints_from_landmarks(detect_landmarks(icl))[0]
+    ref = {k: SimpleNamespace(origin=np.asarray(v.origin), rotation=np.asarray(v.rotation)) for k, v in full.items()}
+    out["decimated"] = {}
+    print("ICL-MRI decimated: joints against the full meshes' (mm / deg; hip: centre only)")
+    for frac in (0.5, 0.25, 0.1):
+        coarse = {k: decimate(b.mesh, int(frac * len(b.mesh.faces))) for k, b in icl.items()}
+        ls = detect_landmarks(coarse)
+        d = compare_joints(joints_from_landmarks(ls)[0], ref, names)
+        out["decimated"][frac] = {"joints": d, "flags": {k: v.flags for k, v in ls.bones.items() if v.flags}}
+        print(f"  faces x{frac}: " + ", ".join(
+            f"{j[:-2]} " + (f"{d[j]['distance_mm']:.2f}" + ("" if j == "hip_r" else f" / {d[j]['angle_deg']:.2f}")
+                            if j in d else "missing") for j in names))
+
+    params = dict(stature=1.2, femoral_anteversion_deg=35.0, neck_shaft_deg=145.0, tibial_torsion_deg=12.0)
+    out["child_phantom"] = {}
+    for physes in (0.0, 1.5e-3):
+        c = phantom_case(1, voxel=(1e-3, 1e-3, 1e-3), params=params, physes=physes)
+        e = {k: float(v) for k, v in c["errors"].items() if k in TOLERANCES}
+        joined = {b: len(c["surfaces"][b].report.get("epiphyses_joined", [])) for b in ("femur_r", "tibia_r")}
+        out["child_phantom"][physes * 1e3] = {"errors": e, "epiphyses_joined": joined,
+                                               "flags": {k: v for k, v in c["flags"].items() if v}}
+        over = [k for k in e if e[k] > TOLERANCES[k]]
+        print(f"1.2 m child phantom, growth plates {physes * 1e3:.1f} mm: " + ", ".join(f"{k} {v:.2f}" for k, v in e.items())
+              + f"; epiphyses joined {joined}; {'over: ' + ', '.join(over) if over else 'all within the 1 mm limits'}")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
@@ -400,6 +504,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--validation", type=int, default=0, metavar="N",
                     help="also run both legs of the N subjects of `personalize validate --seed 2026` (slow)")
+    ap.add_argument("--robustness", action="store_true",
+                    help="also measure the scan ankle angle, joint space, decimation and child-bone cases")
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "landmarks.json")
     args = ap.parse_args()
     out = {"units": {"time": "s", "distance": "mm", "angle": "deg"}}
@@ -410,6 +516,8 @@ def main() -> None:
         out["icl_ankle"] = ankle_diagnostics()
         out["ankle_staple_convention"] = staple_convention()
         out["tlem2"] = tlem2()
+        if args.robustness:
+            out["robustness"] = robustness()
     else:
         print(f"shared data not found at {DATA}: real-bone parts skipped")
     if args.phantom:
