@@ -12,7 +12,8 @@
    cap angle, +-20 %).  For the subtalar joint, whose origin along
    the axis is a convention, the distance from the reference centre to the
    detected axis line is printed as well.
-   The talar trochlea's radius profile about each convention's axis and the
+   The talar trochlea's radius profile about each convention's axis, the hand-built
+   cylinder refitted on the talus surface within 0.3 / 0.5 / 1 mm of itself, and the
    sensitivity of our ankle to the dome seed's parameters (+-20 %) follow,
    then STAPLE's talus-intrinsic trochlea convention (reproduced in
    `personalize.landmarks.trochlea`) and its variants, with their +-20 %
@@ -176,6 +177,31 @@ def ankle_diagnostics() -> dict:
             prof[a] = float(np.median(dist[m]) * 1e3) if m.sum() > 3 else float("nan")
         out["profile_mm"][name] = prof
         print(f"  {name:7s} " + " ".join(f"{a:+d}:{r:.1f}" for a, r in prof.items()))
+    # how closely the hand-built cylinder can be recovered from the surface it describes:
+    # refit on the talus vertices within `tol` of it (normals radial), the largest patch
+    from personalize.fitting import fit_cylinder
+    from personalize.landmarks.common import largest_patch
+
+    mo, mz = manual["ankle_r"].origin, orient(unit(manual["ankle_r"].rotation[:, 2]), u0)
+    v = S.vertices - mo
+    t = v @ mz
+    rad = v - np.outer(t, mz)
+    dist = np.linalg.norm(rad, axis=1)
+    cosr = np.einsum("ij,ij->i", rad, S.normals) / dist
+    r_m = float(np.median(dist[(cosr > 0.95) & (np.abs(t) < 0.008) & (dist < 0.035)]))
+    out["manual_self_consistency"] = {}
+    print(f"hand-built cylinder (radius {r_m * 1e3:.2f} mm) refitted on the talus within tol of it "
+          "(distance mm / angle deg from it):")
+    for tol in (0.3e-3, 0.5e-3, 1.0e-3):
+        patch = largest_patch(S, (np.abs(dist - r_m) < tol) & (cosr > 0.9), 1)[0]
+        fit = fit_cylinder(S.vertices[patch], normals=S.normals[patch], axis_hint=mz, require_convergence=False)
+        z = orient(unit(np.asarray(fit.axis, float)), mz)
+        tt = (S.vertices[patch] - np.asarray(fit.point)) @ z
+        o = np.asarray(fit.point) + 0.5 * (tt.min() + tt.max()) * z
+        d_mm = float(np.linalg.norm(o - mo) * 1e3)
+        a_deg = float(np.degrees(np.arccos(min(1.0, abs(float(z @ mz))))))
+        out["manual_self_consistency"][tol * 1e3] = {"distance_mm": d_mm, "angle_deg": a_deg, "n": int(patch.sum())}
+        print(f"  tol {tol * 1e3:.1f} mm ({int(patch.sum())} vertices): {d_mm:.2f} mm / {a_deg:.2f} deg")
     print("sensitivity of our ankle (vs manual) to the dome seed's parameters (x0.8, x1, x1.2):")
     for pname in ("DOME_CONTACT_GAP", "DOME_CONTACT_MARGIN", "DOME_MIN_UP_COS"):
         base = getattr(T, pname)
