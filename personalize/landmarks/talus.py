@@ -74,20 +74,24 @@ DOME_NEUTRAL_ITERATIONS = 2
 DOME_CONTACT_MARGIN: float | None = 0.003
 
 
+def _facing(surface: Surface, other: Surface, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (m) from each vertex of `surface` to the nearest vertex of `other` (inf beyond
+    `reach`) and whether that vertex lies ahead of the outward normal (within ~73 deg)."""
+    d, j = other.tree().query(surface.vertices, distance_upper_bound=reach)
+    ok = np.isfinite(d)
+    ahead = np.zeros(len(d), bool)
+    vec = other.vertices[j[ok]] - surface.vertices[ok]
+    ahead[ok] = np.einsum("ij,ij->i", vec, surface.normals[ok]) > 0.3 * np.maximum(d[ok], 1e-9)
+    return d, ahead
+
+
 def _near(surface: Surface, other: Surface | None, gap: float) -> np.ndarray | None:
     """Vertices of `surface` whose outward normal ray meets `other` within `gap` (approx.)."""
     if other is None:
         return None
-    d, j = other.tree().query(surface.vertices, distance_upper_bound=gap)
-    ok = np.isfinite(d)
-    out = np.zeros(len(surface.vertices), bool)
-    jj = j[ok]
-    vec = other.vertices[jj] - surface.vertices[ok]
-    nv = np.linalg.norm(vec, axis=1)
-    facing = np.einsum("ij,ij->i", vec, surface.normals[ok]) > 0.3 * np.maximum(nv, 1e-9)
+    d, ahead = _facing(surface, other, gap)
     # nearly touching points count even when the vector is tiny
-    out[np.flatnonzero(ok)] = facing | (nv < 0.0005)
-    return out
+    return ahead | (d < 0.0005)
 
 
 def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | None = None,
@@ -296,17 +300,13 @@ def _neutral_dome(surface: Surface, tibia: Surface, fit, p, u, talus_up, tibia_u
         a, b = unit(a), unit(b)
         rot = Rotation.from_rotvec(np.arctan2(np.cross(a, b) @ u, a @ b) * u)
         turned = Surface(rot.apply(V - p) + p, surface.faces, rot.apply(Nrm), surface.areas, surface.closed)
+        d, ahead = _facing(turned, tibia, max(0.015, DOME_CONTACT_GAP))
+        up_facing = turned.normals @ tibia_up > DOME_MIN_UP_COS
         gap = DOME_CONTACT_GAP
-        if DOME_CONTACT_MARGIN is not None:
-            up_facing = turned.normals @ tibia_up > DOME_MIN_UP_COS
-            d, j = tibia.tree().query(turned.vertices[up_facing], distance_upper_bound=0.015)
-            ok = np.isfinite(d)
-            if ok.sum() >= 30:
-                vec = tibia.vertices[j[ok]] - turned.vertices[up_facing][ok]
-                fac = np.einsum("ij,ij->i", vec, turned.normals[up_facing][ok]) > 0.3 * np.maximum(d[ok], 1e-9)
-                if fac.sum() >= 30:
-                    gap = float(np.percentile(d[ok][fac], 5)) + DOME_CONTACT_MARGIN
-        near = _near(turned, tibia, gap) & (turned.normals @ tibia_up > DOME_MIN_UP_COS)
+        if DOME_CONTACT_MARGIN is not None and (up_facing & ahead).sum() >= 30:
+            gap = float(np.percentile(d[up_facing & ahead], 5)) + DOME_CONTACT_MARGIN
+        # as `_near` with this gap
+        near = ((ahead & (d < gap)) | (d < 0.0005)) & up_facing
         patches = largest_patch(surface, near, 1) if near.sum() >= 30 else []
         if not patches or patches[0].sum() < 30:
             raise FitError("the talus turned to its neutral pose does not meet the tibia")
