@@ -442,13 +442,15 @@ def write_label_nifti(path: str | os.PathLike, labels: np.ndarray, affine_mm: np
 def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0,
                   seed: int = 0, fov=None, bones: Iterable[str] | None = None,
                   progress: Callable[[str], None] | None = None, extra_truth: dict | None = None,
-                  meshes: bool = True, skin: bool = True) -> dict[str, Path]:
+                  meshes: bool = True, skin: bool = True, physes: float = 0.0) -> dict[str, Path]:
     """Write ``labels.nii.gz``, ``label_map.json``, ``meshes/<bone>.ply`` (mm) and ``truth.json`` (m).
 
     `extra_truth` entries (e.g. the motion phantom's knee laws) are merged into ``truth.json``;
     ``meshes=False`` skips the exact reference meshes (the pipeline does not read them).
     ``skin=True`` also labels the soft-tissue envelope of the pelvis (label ``skin``, see
     `label_volume`; the subject's tissue drawn from `seed`, the motion trials' seed).
+    ``physes`` > 0 leaves a child's growth plates of that width (m) unlabelled (`physis_slabs`;
+    the exact meshes stay whole).
 
     Returns the written paths by role.  Files are written atomically; use
     `kinematics.atomic.staged_dir` around this call to publish the folder at once.
@@ -458,7 +460,7 @@ def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e
     out = Path(out_dir)
     labels, affine, label_map = label_volume(ph, voxel=voxel, noise=noise, seed=seed, fov=fov, bones=bones,
                                              progress=(lambda b: progress(f"rasterising {b}")) if progress else None,
-                                             skin=skin, tissue_seed=seed)
+                                             skin=skin, tissue_seed=seed, physes=physes)
     paths = {"labels": write_label_nifti(inside(out, "labels.nii.gz"), labels, affine),
              "label_map": write_text(inside(out, "label_map.json"), json.dumps(label_map, indent=1) + "\n")}
     for b in [b for b in label_map if b != TISSUE_LABEL_NAME] if meshes else ():
@@ -470,7 +472,7 @@ def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e
     truth = ph.truth()
     truth["image"] = {"file": "labels.nii.gz", "voxel_m": np.asarray(_check_voxel(voxel)).tolist(),
                       "noise": float(noise), "noise_seed": int(seed), "affine_units": "mm",
-                      "shape": list(labels.shape),
+                      "shape": list(labels.shape), "growth_plates_m": float(physes),
                       "meshes": "meshes/<bone>.ply in mm, scanner frame" if meshes else None}
     if TISSUE_LABEL_NAME in label_map:
         from .skeleton import pelvis_skin_sites

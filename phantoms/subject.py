@@ -18,7 +18,8 @@ from .imaging import write_phantom
 def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0,
                   seed: int = 0, motion: bool = True, trials: dict | None = None, fov=None,
                   bones: Iterable[str] | None = None, meshes: bool = True,
-                  progress: Callable[[str], None] | None = None, skin: bool = True) -> dict[str, Path]:
+                  progress: Callable[[str], None] | None = None, skin: bool = True,
+                  physes: float = 0.0) -> dict[str, Path]:
     """Write a phantom subject folder into `out_dir` (stage it with `kinematics.atomic.staged_dir`).
 
     Parameters
@@ -30,7 +31,7 @@ def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3,
     seed : seeds the segmentation noise and the motion (soft-tissue artefact, marker noise, knee laws)
     motion : also write the motion trials (needs a two-legged phantom)
     trials : keyword arguments for `phantoms.motion.make_trials` (e.g. ``gait_trials=1``)
-    fov, bones, meshes, progress : as for `phantoms.imaging.write_phantom`
+    fov, bones, meshes, progress, physes : as for `phantoms.imaging.write_phantom`
     skin : also label the pelvis's soft-tissue envelope (label ``skin``; the markers of the motion
         trials sit on it: both use the tissue drawn from `seed`)
 
@@ -46,7 +47,7 @@ def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3,
 
         extra = write_trials(out, ph, seed, progress=progress, **(trials or {}))
     paths = write_phantom(out, ph, voxel=voxel, noise=noise, seed=seed, fov=fov, bones=bones,
-                          progress=progress, extra_truth=extra, meshes=meshes, skin=skin)
+                          progress=progress, extra_truth=extra, meshes=meshes, skin=skin, physes=physes)
     if motion:
         paths["motion"] = out
     return paths

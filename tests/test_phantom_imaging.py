@@ -159,6 +159,30 @@ def test_cli_phantom(tmp_path, capsys):
         assert not (tmp_path / "bad").exists()
 
 
+def test_cli_child_phantom_with_open_growth_plates(tmp_path, capsys):
+    """A child's label volume from the CLI: the femoral head is a separate piece, and
+    ``personalize bones`` joins it back and finds the hip centre."""
+    import scipy.ndimage as ndi
+
+    out = tmp_path / "child"
+    assert main(["phantom", "--out", str(out), "--seed", "1", "--side", "r", "--stature", "1.2",
+                 "--growth-plates", "1.5", "--bones", "femur_r", "--no-motion"]) == 0
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["image"]["growth_plates_m"] == pytest.approx(1.5e-3)
+    labels = np.asarray(nib.load(out / "labels.nii.gz").dataobj)
+    assert ndi.label(labels > 0, structure=np.ones((3, 3, 3), bool))[1] == 3   # shaft + head + distal epiphysis
+    res = tmp_path / "bones"
+    assert main(["bones", str(out / "labels.nii.gz"), "--label-map", str(out / "label_map.json"),
+                 "--out", str(res), "--quiet", "--no-png"]) == 0
+    lm = json.loads((res / "landmarks.json").read_text())["bones"]["femur_r"]
+    head = np.asarray(lm["landmarks"]["femoral_head_centre"]["position"])
+    true_head = np.asarray(truth["landmarks"]["bones"]["femur_r"]["landmarks"]["femoral_head_centre"]["position"])
+    assert np.linalg.norm(head - true_head) < 0.5e-3
+    assert not lm["flags"]
+    code = main(["phantom", "--out", str(tmp_path / "bad"), "--growth-plates", "20", "--no-motion", "--side", "r"])
+    assert code == 2 and "--growth-plates" in capsys.readouterr().err
+
+
 def test_cli_phantom_writes_a_subject_with_motion(tmp_path):
     """The default phantom folder is a subject: trials, truth coordinates and the knee laws in truth.json."""
     from kinematics.c3d import read_c3d

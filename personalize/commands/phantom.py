@@ -39,6 +39,8 @@ def phantom(
     stature: float = typer.Option(1.75, "--stature", help="Standing height in metres."),
     placement: str = typer.Option("random", "--placement", help="Scanner placement: random (from the seed) or identity."),
     bones: str = typer.Option("", "--bones", help="Comma-separated subset of bones to write (default: all)."),
+    growth_plates: float = typer.Option(0.0, "--growth-plates",
+                                        help="Width in mm of a child's open growth plates, left unlabelled (0: adult bones)."),
     motion: bool = typer.Option(True, "--motion/--no-motion",
                                 help="Also write motion trials (static, gait, crouch, functional hip C3Ds, truth/*.mot); needs --side both."),
 ) -> None:
@@ -58,6 +60,8 @@ def phantom(
     if placement not in ("random", "identity"):
         raise InputError("--placement", f"{placement!r} is not one of random, identity")
     level = parse_noise(noise)
+    if not (0.0 <= growth_plates <= 10.0):
+        raise InputError("--growth-plates", f"{growth_plates} mm is outside 0-10 mm")
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     ph = make_phantom(seed=seed, side=side_key, stature=stature, placement=placement)
@@ -80,7 +84,7 @@ def phantom(
 
         with staged_dir(out) as stage:
             write_subject(stage, ph, voxel=tuple(v / 1000.0 for v in voxel), noise=level, seed=seed,
-                          bones=subset, motion=motion, progress=report)
+                          bones=subset, motion=motion, progress=report, physes=growth_plates / 1000.0)
     typer.echo(f"wrote phantom (seed {seed}, {len(subset or ph.bone_names)} bones, voxel {list(voxel)} mm, noise {level}) to {out}")
 
 
