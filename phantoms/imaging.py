@@ -308,10 +308,13 @@ def label_volume(ph: Phantom, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0, seed
                 inside[tuple(nidx[sel].T)] = frac >= 0.5
         if noise > 0:
             _add_noise(inside, d, h, noise, rng)
-        for centre, normal, reach in slabs.get(b, ()):
+        if b in slabs:
             idx = np.column_stack(np.nonzero(inside))
-            q = sub_origin + idx * h - centre
-            cut = (np.abs(q @ normal) < 0.5 * physes) & (np.linalg.norm(q, axis=1) < reach)
+            pts_in = sub_origin + idx * h
+            cut = np.zeros(len(idx), bool)
+            for centre, normal, reach in slabs[b]:
+                q = pts_in - centre
+                cut |= (np.abs(q @ normal) < 0.5 * physes) & (np.linalg.norm(q, axis=1) < reach)
             inside[tuple(idx[cut].T)] = False
         lab = label_map[b]
         region = labels[a[0]:c[0], a[1]:c[1], a[2]:c[2]]
