@@ -33,3 +33,29 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "nothing.nii.gz" in lines[0]
     assert "Traceback" not in proc.stderr and not (tmp_path / "o").exists()
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", "personalize", *args], capture_output=True, text=True)
+
+
+def test_usage_errors_print_usage_and_exit_2():
+    for args, msg in ((["--bogus"], "No such option: --bogus"), (["run"], "Missing argument 'subject_dir'"),
+                      (["ik", "a.osim", "b.trc"], "Missing option '--out'"),
+                      (["markers", "t.c3d", "--out"], "Option '--out' requires an argument")):
+        proc = _run(*args)
+        assert proc.returncode == 2, args
+        assert msg in proc.stderr and "Usage: personalize" in proc.stderr or msg in proc.stderr, proc.stderr
+        assert "internal error" not in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_bare_command_prints_help_and_version():
+    import personalize
+
+    proc = _run()
+    assert proc.returncode == 0 and "Usage: personalize" in proc.stdout and "batch" in proc.stdout
+    assert proc.stderr == ""
+    proc = _run("--version")
+    assert proc.returncode == 0 and proc.stdout.strip() == f"personalize {personalize.__version__}"
+    assert personalize.__version__.count(".") >= 1
+    assert cli.main(["--version"]) == 0
