@@ -1,0 +1,193 @@
+"""Force plates: real C3D (Vicon, four Kistler type-2 plates) against Nexus and ezc3d; modified files for bad input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kinematics.errors import InputError
+from kinematics.forceplates import assign_feet, box_average, read_force_plates
+
+MASS_KG = 85.0  # PROCESSING:Bodymass of Movement_trial.c3d
+
+
+@pytest.fixture(scope="module")
+def trial(shared_data):
+    return shared_data / "mocap_pig" / "Movement_trial.c3d"
+
+
+@pytest.fixture(scope="module")
+def plates(trial):
+    return read_force_plates(trial)
+
+
+def _modified(trial, tmp_path, edit):
+    ezc3d = pytest.importorskip("ezc3d")
+    c = ezc3d.c3d(str(trial))
+    edit(c)
+    out = tmp_path / "modified.c3d"
+    c.write(str(out))
+    return out
+
+
+def test_four_plates_cop_inside_and_matches_nexus(trial, plates):
+    from kinematics.c3d import read_c3d_outputs
+
+    assert len(plates) == 4 and plates.rate == 120.0
+    assert plates.time.shape == (plates.n_frames,)
+    for p in plates:
+        assert p.type == 2 and p.force.shape == (plates.n_frames, 3)
+        assert np.allclose(p.normal, [0, 0, 1])
+        iv = p.intervals(min_frames=10)
+        assert len(iv) == 1  # one step per plate in this stair descent
+        assert p.loaded.sum() > 80
+        # every CoP inside its plate while loaded, on the surface plane, NaN when unloaded
+        assert p.contains(p.cop[p.loaded]).all() and not p.cop_outside.any()
+        assert np.allclose(p.height_above(p.cop[p.loaded]), 0.0, atol=1e-9)
+        assert np.isnan(p.cop[~p.loaded]).all()
+        fn = p.force[p.loaded] @ p.normal
+        assert fn.min() > plates.threshold and fn.max() > 1000.0  # ground pushes up
+        # free moment along the normal
+        fm = p.free_moment[p.loaded]
+        assert np.allclose(fm - np.outer(fm @ p.normal, p.normal), 0.0, atol=1e-9)
+    # Nexus stores the ground reaction per kg, same sign (reaction on the subject, lab frame):
+    # the box-averaged plate wrench equals it to the file's float precision.
+    out = read_c3d_outputs(trial)
+    for name, k in (("RGroundReactionForce", 3), ("LGroundReactionForce", 0)):
+        g = out[name]
+        ok = np.all(np.isfinite(g), axis=1)
+        assert ok.sum() > 90
+        err = np.abs(plates[k].force[ok] / MASS_KG - g[ok]).max()
+        assert err < 1e-5, (name, err)
+
+
+def test_analog_rate_matches_ezc3d(trial):
+    ezc3d = pytest.importorskip("ezc3d")
+    fa = read_force_plates(trial, at="analog")
+    assert fa.rate == 1080.0 and fa.n_frames == 2907
+    c = ezc3d.c3d(str(trial), extract_forceplat_data=True)
+    for k, p in enumerate(fa):
+        e = c["data"]["platform"][k]
+        assert np.allclose(p.force, e["force"].T, atol=1e-9)
+        assert np.allclose(p.moment[:, :2], 0, atol=1e3)
+        lo = p.loaded
+        assert np.allclose(p.cop[lo] * 1e3, e["center_of_pressure"].T[lo], atol=1e-6)
+        assert np.allclose(p.free_moment[lo] * 1e3, e["Tz"].T[lo], atol=1e-4)
+
+
+def test_feet_assigned_from_markers(trial, plates):
+    from kinematics.c3d import read_c3d
+
+    contacts = assign_feet(plates, read_c3d(trial))
+    assert [(c.plate, c.foot) for c in contacts] == [(3, "R"), (2, "L"), (1, "R"), (0, "L")]
+    for c in contacts:
+        other = "L" if c.foot == "R" else "R"
+        assert c.cop_distance[c.foot] < 0.05 and c.cop_distance[other] > 0.15
+        assert "two feet" not in c.flags and "cop outside plate" not in c.flags
+    assert contacts[-1].flags == ("partial",) and not contacts[0].flags  # last stance runs to the trial's end
+    assert all(c.usable for c in contacts)
+
+
+def test_two_feet_on_one_plate_flagged(trial, plates):
+    from kinematics.c3d import read_c3d
+    from kinematics.markers import MarkerTrial
+
+    mk = read_c3d(trial)
+    c0 = assign_feet(plates, mk)[0]  # right foot on plate 4
+    pos = mk.positions.copy()
+    # put the left foot, standing still, next to the right one on plate 4 during that stance
+    for name in ("LHEE", "LTOE", "LANK"):
+        j = mk.index(name)
+        r = pos[c0.start:c0.stop, mk.index("R" + name[1:])]
+        pos[c0.start:c0.stop, j] = r.mean(axis=0) + np.array([0.0, 0.12, 0.0]) * np.sign(plates[3].centre[1] - r[:, 1].mean())
+    moved = MarkerTrial(mk.names, pos, mk.rate, mk.time, mk.source)
+    c = assign_feet(plates, moved)[0]
+    assert c.plate == 3 and "two feet" in c.flags and c.foot is None and not c.usable
+
+
+def test_cop_outside_plate_flagged(trial, tmp_path):
+    def shrink(c):
+        corners = np.array(c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"], float)
+        centre = corners[:, :, 0].mean(axis=1, keepdims=True)
+        corners[:, :, 0] = centre + 0.3 * (corners[:, :, 0] - centre)  # plate 1 shrunk to 30 %
+        c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"] = corners
+
+    fp = read_force_plates(_modified(trial, tmp_path, shrink))
+    p = fp[0]
+    assert p.cop_outside.sum() > 10 and any("outside" in n for n in p.notes)
+    from kinematics.c3d import read_c3d
+
+    c = next(c for c in assign_feet(fp, read_c3d(trial)) if c.plate == 0)
+    assert "cop outside plate" in c.flags and not c.usable
+
+
+def test_analog_rate_not_consistent_refused(trial, tmp_path):
+    # ANALOG:RATE 1000 Hz with 9 stored samples per 120 Hz frame (ezc3d will not write such a file,
+    # so the parameter's float is patched in the parameter section)
+    import struct
+
+    data = trial.read_bytes()
+    start = 512 * (data[0] - 1)
+    key = b"RATE"
+    i = data.index(key, start)
+    while struct.unpack("<f", data[i + len(key) + 4:i + len(key) + 8])[0] != 1080.0:
+        i = data.index(key, i + 1)
+    j = i + len(key) + 4
+    bad = tmp_path / "rate.c3d"
+    bad.write_bytes(data[:j] + struct.pack("<f", 1000.0) + data[j + 4:])
+    with pytest.raises(InputError, match="ANALOG:RATE 1000 Hz"):
+        read_force_plates(bad)
+
+
+def test_no_plates_kinematics_only(trial, tmp_path):
+    def drop(c):
+        c["parameters"]["FORCE_PLATFORM"]["USED"]["value"] = np.array([0])
+
+    fp = read_force_plates(_modified(trial, tmp_path, drop))
+    assert len(fp) == 0 and "kinematics only" in fp.notes[0] and fp.n_frames == 323
+
+
+def test_type4_calibration_matrix(trial, tmp_path, plates):
+    cal = np.diag([2.0, 2.0, 2.0, 2.0, 2.0, 2.0])
+    cal[0, 1] = 0.5  # cross-talk term: fx' = 2 fx + 0.5 fy
+
+    def type4(c):
+        fp = c["parameters"]["FORCE_PLATFORM"]
+        fp["TYPE"]["value"] = np.array([4, 2, 2, 2])
+        c.add_parameter("FORCE_PLATFORM", "CAL_MATRIX", np.repeat(cal[:, :, None], 4, axis=2))
+
+    fp4 = read_force_plates(_modified(trial, tmp_path, type4), threshold=40.0)
+    ref = read_force_plates(trial, zero="none", at="points")
+    p, q = fp4[0], ref[0]
+    assert p.type == 4
+    fp_plate, fq_plate = p.force @ p.rotation, q.force @ q.rotation  # back to the plate frame
+    assert np.allclose(fp_plate[:, 2], 2 * fq_plate[:, 2], atol=1e-6)
+    assert np.allclose(fp_plate[:, 0], 2 * fq_plate[:, 0] + 0.5 * fq_plate[:, 1], atol=1e-6)
+    assert np.allclose(fp_plate[:, 1], 2 * fq_plate[:, 1], atol=1e-6)
+    lo = p.loaded & q.loaded
+    # CoP: the gain cancels; the cross-talk moves the moment transfer to the surface (sensor origin
+    # 41 mm below it, o_z = -0.041 m along plate Z, which points down): dx = 0.25 f_y o_z / f_z
+    cp, cq = (p.cop[lo] - p.centre) @ p.rotation, (q.cop[lo] - q.centre) @ q.rotation
+    fy, fz = fq_plate[lo, 1], fq_plate[lo, 2]
+    assert np.allclose(cp[:, 0], cq[:, 0] + 0.25 * fy * -0.041 / fz, atol=1e-9)
+    assert np.allclose(cp[:, 1], cq[:, 1], atol=1e-9)
+
+
+def test_missing_calibration_matrix_refused(trial, tmp_path):
+    def type4(c):
+        c["parameters"]["FORCE_PLATFORM"]["TYPE"]["value"] = np.array([4, 2, 2, 2])
+
+    with pytest.raises(InputError, match="CAL_MATRIX"):
+        read_force_plates(_modified(trial, tmp_path, type4))
+
+
+@pytest.mark.parametrize("fa", [1080.0, 1000.0, 600.0])
+def test_box_average_is_centred_mean(fa):
+    fp, n = 120.0, 60
+    t = np.arange(int(n / fp * fa) + 20) / fa
+    x = np.column_stack([3.0 + 2.0 * t, np.sin(2 * np.pi * 5 * t)])
+    y = box_average(x, fa, fp, n)
+    tk = np.arange(n) / fp
+    inner = slice(1, n - 1)
+    assert np.allclose(y[inner, 0], 3.0 + 2.0 * tk[inner], atol=1e-9)  # a ramp's mean is its centre value
+    T = 1 / fp  # the box's transfer function for a sine: sinc(f T)
+    assert np.allclose(y[inner, 1], np.sinc(5 * T) * np.sin(2 * np.pi * 5 * tk[inner]), atol=2e-3)
