@@ -45,7 +45,8 @@ def surface_errors(ph, surfaces: dict, bones=DEMO_SURFACE_BONES) -> dict:
 
 
 def run_demo(out: str | Path, seed: int = 0, voxel_mm: float = 1.0,
-             progress: Callable[[str], None] | None = None, pipeline: bool = True, short: bool = False) -> dict:
+             progress: Callable[[str], None] | None = None, pipeline: bool = True, short: bool = False,
+             overwrite: bool = False) -> dict:
     """Run the demonstration into `out` and return its summary (also written to ``out/demo.json``).
 
     Parameters
@@ -62,15 +63,27 @@ def run_demo(out: str | Path, seed: int = 0, voxel_mm: float = 1.0,
         (outputs in ``out/model/``, errors in ``summary["pipeline"]``).
     short : bool
         Short motion trials (one gait cycle, one crouch, a short star-arc).
+    overwrite : bool
+        Replace a non-empty `out` that is not an earlier demo (one with ``demo.json``
+        is always replaced).  `out` is replaced whole; on error it keeps its old content.
     """
+    from .outputs import check_output_dir, fresh_dir
+
+    say = progress or (lambda msg: None)
+    out = Path(out)
+    check_output_dir(out, overwrite=overwrite or (out / "demo.json").is_file())
+    with fresh_dir(out):
+        return _run_demo(out, ph_seed=seed, voxel_mm=voxel_mm, say=say, pipeline=pipeline, short=short)
+
+
+def _run_demo(out: Path, *, ph_seed: int, voxel_mm: float, say, pipeline: bool, short: bool) -> dict:
     from phantoms import make_phantom
     from phantoms.subject import write_subject
 
     from .pipeline import SHORT_TRIALS, run_subject
     from .surfaces import load_bones
 
-    say = progress or (lambda msg: None)
-    out = Path(out)
+    seed = ph_seed
     say(f"building phantom (seed {seed})")
     ph = make_phantom(seed=seed)
     # the subject folder is published first so that the pipeline (and its report) see its final path

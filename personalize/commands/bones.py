@@ -23,13 +23,14 @@ from typing import Optional
 import numpy as np
 import typer
 
-from kinematics.atomic import inside, staged_dir
+from kinematics.atomic import inside
 
 from ..errors import InputError
+from ..outputs import check_output_dir, replaced_dir
 
 
 def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: bool = True,
-              quiet: bool = False) -> dict:
+              quiet: bool = False, overwrite: bool = False) -> dict:
     """Library form of the command; returns ``{"landmarks": ..., "joints": ...}`` (JSON-ready)."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -38,6 +39,7 @@ def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: 
     from ..landmarks import detect_landmarks
     from ..surfaces import load_bones
 
+    check_output_dir(out, inputs=[input, label_map], overwrite=overwrite)
     console = Console(stderr=True, quiet=quiet)
     with Progress(TextColumn("[bold]bones[/bold] {task.description}"), BarColumn(), TextColumn("{task.completed} bones"),
                   TimeElapsedColumn(), console=console, transient=True) as prog:
@@ -62,7 +64,7 @@ def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: 
               "joints": {k: v.to_json() for k, v in joints.items()},
               "dropped": dropped}
     fits = ls.fits_json()
-    with staged_dir(out) as stage:
+    with replaced_dir(out) as stage:
         for name, payload in (("landmarks.json", lm_json), ("joints.json", j_json), ("fits.json", fits)):
             inside(stage, name).write_text(json.dumps(payload, indent=1), encoding="utf-8")
         if png:
@@ -89,9 +91,10 @@ def register(app: typer.Typer) -> None:
         label_map: Optional[Path] = typer.Option(None, "--label-map", help="JSON {bone: label} for label volumes"),
         png: bool = typer.Option(True, "--png/--no-png", help="write a picture per bone"),
         quiet: bool = typer.Option(False, "--quiet", "-q"),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
     ) -> None:
         """Landmarks, joint centres and axes (with uncertainties) from bone surfaces."""
-        run_bones(input, out, label_map=label_map, png=png, quiet=quiet)
+        run_bones(input, out, label_map=label_map, png=png, quiet=quiet, overwrite=overwrite)
 
 
 _ = np

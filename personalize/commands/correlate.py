@@ -30,12 +30,13 @@ from typing import List, Optional
 import numpy as np
 import typer
 
-from kinematics.atomic import inside, staged_dir
+from kinematics.atomic import inside
 from kinematics.correlative import (CorrelativeLaw, TextTable, coefficient_table, deviation_table, fit_law,
                                     fit_laws_by_group, json_text, plot_deviation)
 from kinematics.storage import Table, guess_rotational, read_mot, read_sto
 
 from ..errors import InputError
+from ..outputs import check_output_dir, replaced_dir
 
 ROTATIONS = ("flexion", "adduction", "rotation")
 TRANSLATIONS = ("tx", "ty", "tz")
@@ -111,7 +112,7 @@ def fit_table(laws: dict[str, CorrelativeLaw]) -> TextTable:
 
 def run_correlate(kinematics: list[Path], out: Path, *, joint: str = "knee_r", independent: Optional[str] = None,
                   dependent: Optional[str] = None, rotational: Optional[str] = None, by_trial: bool = False,
-                  folds: int = 0, quiet: bool = False) -> dict:
+                  folds: int = 0, quiet: bool = False, overwrite: bool = False) -> dict:
     """Library form of the command; returns the law.json content."""
     if not kinematics:
         raise InputError("KINEMATICS", "no kinematics file given")
@@ -124,6 +125,7 @@ def run_correlate(kinematics: list[Path], out: Path, *, joint: str = "knee_r", i
     if both:
         raise InputError("--dependent", f"{', '.join(both)} listed both as dependent and independent")
     paths = [Path(p) for p in kinematics]
+    check_output_dir(out, inputs=paths, overwrite=overwrite)
     labels = _trial_labels(paths)
 
     X, Y, groups, frames = [], [], [], {}
@@ -182,7 +184,7 @@ def run_correlate(kinematics: list[Path], out: Path, *, joint: str = "knee_r", i
     t2 = deviation_table(cells, unit="mm" if lengths else "m", digits=2)
     t3 = fit_table(all_laws)
 
-    with staged_dir(out) as stage:
+    with replaced_dir(out) as stage:
         (inside(stage, "law.json")).write_text(json_text(law_json) + "\n", encoding="utf-8")
         if by_trial:
             per = {}
@@ -236,10 +238,12 @@ def register(app: typer.Typer) -> None:
         by_trial: bool = typer.Option(False, "--by-trial", help="Also fit one law per trial (sub-motion laws)."),
         folds: int = typer.Option(0, "--folds", help="Held-out error from N contiguous blocks per trial instead of leave-one-trial-out (useful with one trial)."),
         quiet: bool = typer.Option(False, "--quiet", help="No summary table."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
     ) -> None:
         """Correlative joint law (Pronost 2010): translations as linear functions of the rotations."""
         law = run_correlate(kinematics, out, joint=joint, independent=independent, dependent=dependent,
-                            rotational=rotational, by_trial=by_trial, folds=folds, quiet=quiet)
+                            rotational=rotational, by_trial=by_trial, folds=folds, quiet=quiet,
+                            overwrite=overwrite)
         fit = law["fit"]
         typer.echo(f"wrote law.json (R2 {', '.join(_fmt(v, 1, 3) for v in fit['r2'])}; "
                    f"mean deviation {_fmt(fit['mean_deviation'], 1e3, 2)} mm) and tables to {out}")

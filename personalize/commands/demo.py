@@ -14,15 +14,18 @@ def register(app: typer.Typer) -> None:
         voxel: float = typer.Option(1.0, "--voxel", help="Isotropic voxel size of the phantom MRI, mm."),
         quick: bool = typer.Option(False, "--quick", help="Short motion trials (faster)."),
         pipeline: bool = typer.Option(True, "--pipeline/--no-pipeline", help="Run the MRI + motion pipeline on the phantom."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out that is not an earlier demo."),
     ) -> None:
         """Run the pipeline on a built-in phantom subject and print its errors against the known truth."""
         from rich.console import Console
 
         from ..demo import render_summary, run_demo
+        from ..progress import StepProgress
 
         console = Console()
-        with console.status("demo") as status:
-            summary = run_demo(out, seed=seed, voxel_mm=voxel, progress=lambda m: status.update(f"demo: {m}"),
-                               pipeline=pipeline, short=quick)
+        # about 12 phantom-writing, 10 surface and 45 pipeline steps (full trials; --quick has fewer trials)
+        with StepProgress("demo", 60 if pipeline else 25, Console(stderr=True)) as prog:
+            summary = run_demo(out, seed=seed, voxel_mm=voxel, progress=prog, pipeline=pipeline, short=quick,
+                               overwrite=overwrite)
         render_summary(summary, console)
         console.print(f"results in {out}/ (demo.json, subject/" + (", model/: model.osim, report.html)" if pipeline else ")"))

@@ -41,6 +41,10 @@ def run_ik(model_path: Path, trial_path: Path, out: Path, setup: Optional[Path] 
         raise InputError(out, "the output file must end in .mot")
     if not trial_path.is_file():
         raise InputError(trial_path, "marker file not found")
+    from ..outputs import check_output_file
+
+    check_output_file(out, inputs=[model_path, trial_path, setup])
+    check_output_file(out.with_name(out.stem + "_marker_errors.sto"), inputs=[model_path, trial_path, setup])
     model = load_osim(model_path)
     trial = read_trc(trial_path)
     su = read_ik_setup(setup) if setup is not None else None

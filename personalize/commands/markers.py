@@ -103,9 +103,12 @@ def _gaps(trial, max_gap: float, label: str, notes: list, gap_log: list):
 
 
 def run_markers(trial: Path, *, method: str, out: Path, subject: Optional[Path] = None, static: Optional[Path] = None,
-                functional: Optional[Path] = None, max_gap: float = 0.1, plot: bool = True) -> dict:
+                functional: Optional[Path] = None, max_gap: float = 0.1, plot: bool = True,
+                overwrite: bool = False) -> dict:
     """Run the command; returns the report dict."""
-    from kinematics.atomic import inside, staged_dir, write_text
+    from kinematics.atomic import inside, write_text
+
+    from ..outputs import check_output_dir, replaced_dir
     from kinematics.correlative import json_text
     from kinematics.markers import MarkerTrial
     from kinematics.reconstruction import ANGLE_COLUMNS, CENTRE_MARKERS, METHODS, reconstruct
@@ -118,8 +121,7 @@ def run_markers(trial: Path, *, method: str, out: Path, subject: Optional[Path] 
         raise InputError("--subject", "subject measurements are needed (.vsk or .json: leg lengths, knee and ankle widths)")
     if not (0.0 <= max_gap <= 2.0):
         raise InputError("--max-gap", f"{max_gap} s is outside 0-2 s")
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "exists and is not a folder")
+    check_output_dir(out, inputs=[trial, subject, static, functional], overwrite=overwrite)
     subj = read_subject(subject)
     notes: list[str] = []
     gap_log: list[dict] = []
@@ -149,7 +151,7 @@ def run_markers(trial: Path, *, method: str, out: Path, subject: Optional[Path] 
         report["chain_residual_mm_median"] = {
             c: {k: float(np.nanmedian(r) * 1e3) for k, r in res.items() if np.isfinite(r).any()}
             for c, res in rec.residuals.items()}
-    with staged_dir(out) as stage:
+    with replaced_dir(out) as stage:
         names = tuple(CENTRE_MARKERS[k] for k in CENTRE_MARKERS)
         pos = np.stack([rec.centres[k] for k in CENTRE_MARKERS], axis=1)
         write_trc(inside(stage, "centres.trc"), MarkerTrial(names, pos, tr.rate, tr.time, "centres.trc"))
@@ -172,10 +174,11 @@ def register(app: typer.Typer) -> None:
         functional: Optional[Path] = typer.Option(None, "--functional", help="Hip calibration trial (star-arc) for functional hip centres."),
         max_gap: float = typer.Option(0.1, "--max-gap", help="Fill marker gaps up to this many seconds (cubic spline); longer ones stay missing."),
         no_plot: bool = typer.Option(False, "--no-plot", help="Skip angles.png."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
     ) -> None:
         """Joint centres and Plug-in-Gait joint angles of a marker trial (pig or foot-to-hip)."""
         rep = run_markers(trial, method=method, out=out, subject=subject, static=static, functional=functional,
-                          max_gap=max_gap, plot=not no_plot)
+                          max_gap=max_gap, plot=not no_plot, overwrite=overwrite)
         for n in rep["notes"]:
             typer.echo(f"note: {n}", err=True)
         typer.echo(f"{method}: {rep['valid_frames']}/{rep['frames']} frames reconstructed; wrote centres.trc, "

@@ -31,7 +31,7 @@ def parse_noise(text: str) -> float:
 
 
 def phantom(
-    out: Path = typer.Option(..., "--out", help="Output folder (created; files are replaced atomically)."),
+    out: Path = typer.Option(..., "--out", help="Output folder (created; published whole when complete)."),
     seed: int = typer.Option(0, "--seed", help="Subject seed: size variation, scanner placement and noise."),
     voxel: tuple[float, float, float] = typer.Option((1.0, 1.0, 1.0), "--voxel", help="Voxel spacing SX SY SZ in mm."),
     noise: str = typer.Option("none", "--noise", help="Segmentation noise: none, low, medium, high or a level 0..1."),
@@ -43,14 +43,16 @@ def phantom(
                                         help="Width in mm of a child's open growth plates, left unlabelled (0: adult bones)."),
     motion: bool = typer.Option(True, "--motion/--no-motion",
                                 help="Also write motion trials (static, gait, crouch, functional hip C3Ds, truth/*.mot); needs --side both."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
 ) -> None:
     """Write a synthetic subject: label volume, exact meshes, motion trials (C3D) and ground truth."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from kinematics.atomic import staged_dir
     from phantoms import make_phantom
     from phantoms.subject import write_subject
+
+    from ..outputs import check_output_dir, replaced_dir
 
     side_key = side.strip().lower()
     if side_key not in ("both", "r", "l"):
@@ -62,8 +64,7 @@ def phantom(
     level = parse_noise(noise)
     if not (0.0 <= growth_plates <= 10.0):
         raise InputError("--growth-plates", f"{growth_plates} mm is outside 0-10 mm")
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "exists and is not a folder")
+    check_output_dir(out, overwrite=overwrite)
     ph = make_phantom(seed=seed, side=side_key, stature=stature, placement=placement)
     subset = None
     if bones.strip():
@@ -82,7 +83,7 @@ def phantom(
         def report(msg: str) -> None:
             prog.update(task, description=msg, advance=1)
 
-        with staged_dir(out) as stage:
+        with replaced_dir(out) as stage:
             write_subject(stage, ph, voxel=tuple(v / 1000.0 for v in voxel), noise=level, seed=seed,
                           bones=subset, motion=motion, progress=report, physes=growth_plates / 1000.0)
     typer.echo(f"wrote phantom (seed {seed}, {len(subset or ph.bone_names)} bones, voxel {list(voxel)} mm, noise {level}) to {out}")

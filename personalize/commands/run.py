@@ -23,21 +23,37 @@ def register(app: typer.Typer) -> None:
         seed: int = typer.Option(0, "--seed", help="Seed of the surface point sampling (runs are deterministic)."),
         report: bool = typer.Option(True, "--report/--no-report", help="Write report.html."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress display."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
     ) -> None:
         """Personalised model from MRI and motion capture: fused joints, model.osim, IK of every trial, report."""
         from rich.console import Console
-        from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
         from ..pipeline import run_subject
+        from ..progress import StepProgress
 
         console = Console(stderr=True, quiet=quiet)
-        with Progress(SpinnerColumn(), TextColumn("[bold]run[/bold] {task.description}"), TimeElapsedColumn(),
-                      console=console, transient=True) as prog:
-            task = prog.add_task("starting", total=None)
-            summary = run_subject(subject_dir, out, seed=seed, report=report,
-                                  progress=lambda m: prog.update(task, description=m))
+        with StepProgress("run", expected_steps(subject_dir), console) as prog:
+            summary = run_subject(subject_dir, out, seed=seed, report=report, progress=prog, overwrite=overwrite)
         if not quiet:
             _print_summary(summary, out, Console())
+
+
+def expected_steps(subject_dir: Path) -> int:
+    """About how many progress messages `run_subject` gives: per bone (surface, landmarks), per trial (IK, knee law)."""
+    import json
+
+    d = Path(subject_dir)
+    try:
+        if (d / "label_map.json").is_file():
+            n_bones = len(json.loads((d / "label_map.json").read_text(encoding="utf-8")))
+        elif (d / "bones").is_dir():
+            n_bones = sum(1 for p in (d / "bones").iterdir() if p.suffix.lower() in (".ply", ".stl", ".obj", ".vtp"))
+        else:
+            n_bones = 13
+        n_trials = sum(1 for p in d.glob("*.c3d") if p.name != "static.c3d")
+    except (OSError, ValueError, TypeError):
+        n_bones, n_trials = 13, 4
+    return 2 * n_bones + 2 * n_trials + 14
 
 
 def _print_summary(summary: dict, out: Path, console) -> None:

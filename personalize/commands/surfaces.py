@@ -14,10 +14,11 @@ from typing import Optional
 import numpy as np
 import typer
 
-from kinematics.atomic import inside, staged_dir
+from kinematics.atomic import inside
 
 from ..bones import canonical_bone_name
 from ..errors import InputError
+from ..outputs import check_output_dir, replaced_dir
 
 _SCALE = {"m": 1.0, "mm": 1e3, "um": 1e6, "cm": 1e2}
 
@@ -53,7 +54,7 @@ def _bone_list(text: Optional[str]) -> Optional[list[str]]:
 
 def run_surfaces(input: Path, out: Path, *, label_map: Optional[Path] = None, bones: Optional[str] = None,
                  faces: Optional[int] = None, fix_orientation: bool = False, points: bool = False,
-                 quiet: bool = False) -> dict:
+                 quiet: bool = False, overwrite: bool = False) -> dict:
     """Library form of the command; returns the surfaces.json content."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -61,8 +62,7 @@ def run_surfaces(input: Path, out: Path, *, label_map: Optional[Path] = None, bo
     from ..surfaces import load_bones
 
     bone_names = _bone_list(bones)
-    if input.is_dir() and out.resolve() == input.resolve():
-        raise InputError(out, "--out must differ from the input mesh folder (its meshes would be overwritten)")
+    check_output_dir(out, inputs=[input, label_map], overwrite=overwrite)
     if faces is not None and faces < 100:
         raise InputError("--faces", f"target face count must be at least 100, got {faces}")
     console = Console(stderr=True, quiet=quiet)
@@ -118,7 +118,7 @@ def run_surfaces(input: Path, out: Path, *, label_map: Optional[Path] = None, bo
             entry["point_outliers_removed"] = pc.outliers_removed
     summary["mesh_units"] = sorted({e["mesh_units"] for e in summary["bones"].values()})[0] \
         if summary["bones"] else None
-    with staged_dir(out) as stage:
+    with replaced_dir(out) as stage:
         for rel, data in files.items():
             inside(stage, rel).write_bytes(data)
         inside(stage, "surfaces.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
@@ -148,9 +148,10 @@ def register(app: typer.Typer) -> None:
         fix_orientation: bool = typer.Option(False, "--fix-orientation", help="Invert inside-out meshes instead of refusing them."),
         points: bool = typer.Option(False, "--points", help="Also write <bone>_points.ply point clouds with normals."),
         quiet: bool = typer.Option(False, "--quiet", help="No progress display."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
     ) -> None:
         """Bone surfaces (PLY, input units and frame) and a surfaces.json summary."""
         summary = run_surfaces(input, out, label_map=label_map, bones=bones, faces=faces,
-                               fix_orientation=fix_orientation, points=points, quiet=quiet)
+                               fix_orientation=fix_orientation, points=points, quiet=quiet, overwrite=overwrite)
         n = len(summary["bones"])
         typer.echo(f"wrote {n} bone surface(s) and surfaces.json to {out}")
