@@ -10,13 +10,20 @@ One dask task per subject.  The runner
 * runs each remaining subject's job into a staging folder published into
   ``OUT/<subject>/`` only when the job succeeded; ``summary.json`` - the
   completion marker - is written last, after everything else is in place;
+* runs each subject's job in a process of its own, started by the dask task
+  (``python -m personalize.cohort``): a job that segfaults, calls ``os._exit``
+  or is killed for memory takes only its own process down, so its death is
+  attributed to that subject alone and the dask worker (and the subjects
+  queued on it) never dies;
 * records a bad subject (`InputError`, `FitError`) as an error row while the
-  others go on; other exceptions are retried (``retries``) and a worker that
-  dies mid-task has its task rescheduled by the scheduler (up to
-  ``distributed.scheduler.allowed-failures`` deaths, default 3), so nothing is lost;
+  others go on; other exceptions and dead job processes are retried
+  (``retries``), then reported with what killed the process (signal or exit code);
 * rewrites ``OUT/batch.csv`` (subject, status ok|error|skipped, seconds, error,
   output) atomically after every completed subject, so an interrupted batch
-  still says what is done.
+  still says what is done; staging folders are removed;
+* stops on SIGINT (Ctrl-C) or SIGTERM by cancelling the remaining subjects
+  and raising `personalize.errors.Interrupted` (the CLI exits 130 / 143); a
+  rerun resumes from the complete subjects.
 
 Workers run with one BLAS/OpenMP thread (the parallelism is across subjects).
 
@@ -37,13 +44,18 @@ import math
 import os
 import re
 import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
 import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
-from kinematics.atomic import inside, staged_dir, write_text
+from kinematics.atomic import inside, write_text
 from kinematics.errors import FitError, InputError
 
 #: the per-subject job used when none is given: ``run_subject(subject_dir, out, *, progress=None) -> dict``
@@ -284,32 +296,154 @@ def _error_text(exc: BaseException) -> str:
     return " ".join(f"{kind}: {exc}".split())  # one line
 
 
+class JobDied(RuntimeError):
+    """The process running a subject's job died (signal, ``os._exit``, out of memory) before returning."""
+
+
+class JobFailed(RuntimeError):
+    """A subject's job raised an unexpected exception (not `InputError`/`FitError`) in its process."""
+
+
+def _summary_text(summary) -> str:
+    if not isinstance(summary, dict):
+        raise TypeError(f"the job returned {type(summary).__name__}, expected the summary dict")
+    return json.dumps(summary, indent=1, default=_json_default, allow_nan=True) + "\n"
+
+
+def _isolated(job, job_kwargs) -> bool:
+    """Whether the job can run in a process of its own (named by module path, JSON keyword arguments)."""
+    if not isinstance(job, str):
+        return False
+    try:
+        json.dumps(job_kwargs or {})
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _death_text(code: int, log: Path) -> str:
+    if code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        what = f"killed by {name}" + (" (a crash in native code)" if -code in (signal.SIGSEGV, signal.SIGBUS, signal.SIGABRT)
+                                      else " (out of memory?)" if -code == signal.SIGKILL else "")
+    else:
+        what = f"exited with code {code} without a result"
+    tail = ""
+    try:
+        lines = [ln for ln in log.read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
+        if lines:
+            tail = f"; last output: {lines[-1].strip()[:200]}"
+    except OSError:
+        pass
+    return f"the job's process {what}{tail}"
+
+
+def _run_isolated(job: str, subject_dir: str, stage: Path, job_kwargs: dict | None) -> str:
+    """Run the job in a child process; returns the summary text, raises InputError/FitError/JobFailed/JobDied."""
+    tmp = Path(tempfile.mkdtemp(prefix="personalize-job-"))
+    try:
+        req, res, log = tmp / "request.json", tmp / "result.json", tmp / "output.log"
+        req.write_text(json.dumps({"job": job, "subject_dir": subject_dir, "out": str(stage),
+                                   "kwargs": job_kwargs or {}, "result": str(res)}), encoding="utf-8")
+        env = dict(os.environ)
+        env.update({k: env.get(k, v) for k, v in THREAD_ENV.items()})
+        env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+        with open(log, "wb") as lf:
+            # a session of its own: a Ctrl-C at the terminal reaches the batch, which stops the jobs itself
+            proc = subprocess.Popen([sys.executable, "-m", "personalize.cohort", str(req)], stdin=subprocess.DEVNULL,
+                                    stdout=lf, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+            try:
+                code = proc.wait()
+            except BaseException:
+                proc.kill()
+                proc.wait()
+                raise
+        try:
+            out = json.loads(res.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            raise JobDied(_death_text(code, log)) from None
+        if out["status"] == "ok":
+            return out["summary"]
+        if out["status"] == "input":
+            raise InputError(None, out["message"])
+        if out["status"] == "fit":
+            raise FitError(out["message"])
+        raise JobFailed(out["message"])
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _watch_parent() -> None:
+    """Exit when the parent (the dask worker) is gone: an orphaned job must not run on."""
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(0.5)
+            if os.getppid() != parent:
+                os._exit(143)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def _child_main(request: str) -> int:
+    """Entry point of a job's own process: ``python -m personalize.cohort REQUEST.json``."""
+    req = json.loads(Path(request).read_text(encoding="utf-8"))
+    _watch_parent()
+    res = Path(req["result"])
+    try:
+        fn = resolve_job(req["job"])
+        out = {"status": "ok", "summary": _summary_text(fn(Path(req["subject_dir"]), Path(req["out"]), **req["kwargs"]))}
+    except InputError as exc:
+        out = {"status": "input", "message": str(exc)}
+    except FitError as exc:
+        out = {"status": "fit", "message": str(exc)}
+    except Exception as exc:
+        out = {"status": "exception", "message": " ".join(f"{type(exc).__name__}: {exc}".split())}
+    write_text(res, json.dumps(out))
+    return 0
+
+
+def _remove_leftovers(out: Path, subject: str) -> None:
+    """Staging and set-aside folders of `subject` left by a job that died (the runner's and the job's nested ones)."""
+    for pat in (f".{subject}.staging-*", f"..{subject}.staging-*", f".{subject}.old-*", f"..{subject}.staging-*.old-*"):
+        for stale in out.glob(pat):
+            shutil.rmtree(stale, ignore_errors=True)
+
+
 def run_subject_task(subject: str, subject_dir: str, out_dir: str, job: str | Callable,
                      job_kwargs: dict | None = None) -> dict:
     """Run one subject on a worker; returns a `SubjectResult` as a dict.
 
-    The job writes into a staging folder that is published into `out_dir` only
-    on success; the returned summary is then written to ``out_dir/summary.json``
-    last, so its presence means the subject is complete.  `InputError` and
-    `FitError` (deterministic, caused by the subject) become an error result;
-    any other exception propagates so that dask retries the task.
+    The job runs in a process of its own (see the module docstring; a job given
+    as a callable that cannot be named by module path runs in the worker) and
+    writes into a staging folder that replaces `out_dir` whole only on success,
+    with the returned summary as ``summary.json`` (so its presence means the
+    subject is complete).  `InputError` and `FitError` (deterministic, caused by
+    the subject) become an error result; an unexpected exception (`JobFailed`)
+    or a dead job process (`JobDied`) propagates so that dask retries the task.
     """
+    from .outputs import replaced_dir
+
     for k, v in THREAD_ENV.items():
         os.environ.setdefault(k, v)
-    fn = resolve_job(job)
     final = Path(out_dir)
     t0 = time.perf_counter()
     try:
-        with staged_dir(final) as stage:
-            summary = fn(Path(subject_dir), stage, **(job_kwargs or {}))
-            if not isinstance(summary, dict):
-                raise TypeError(f"the job returned {type(summary).__name__}, expected the summary dict")
-            text = json.dumps(summary, indent=1, default=_json_default, allow_nan=True) + "\n"
-            (stage / SUMMARY).unlink(missing_ok=True)  # published last, below
-        write_text(final / SUMMARY, text)
+        with replaced_dir(final) as stage:
+            if _isolated(job, job_kwargs):
+                text = _run_isolated(job, subject_dir, stage, job_kwargs)
+            else:
+                text = _summary_text(resolve_job(job)(Path(subject_dir), stage, **(job_kwargs or {})))
+            write_text(stage / SUMMARY, text)
     except (InputError, FitError) as exc:
         return {"subject": subject, "status": "error", "seconds": time.perf_counter() - t0,
                 "error": _error_text(exc), "output": str(final)}
+    finally:
+        _remove_leftovers(final.parent, subject)
     return {"subject": subject, "status": "ok", "seconds": time.perf_counter() - t0, "error": "", "output": str(final)}
 
 
@@ -373,26 +507,68 @@ def dask_client(scheduler=None, workers: int = 2) -> Iterator[Any]:
         os.environ.update(saved_env)
 
 
-def _failure_row(s: Subject, dst: Path, fut) -> SubjectResult:
+def _failure_row(s: Subject, dst: Path, fut, attempts: int, started_ns: int) -> SubjectResult:
+    """The row of a subject whose task failed; a subject found complete (written during this run) is ok."""
+    if is_complete(dst) and (dst / SUMMARY).stat().st_mtime_ns >= started_ns:
+        return SubjectResult(s.id, "ok", float("nan"), "", str(dst))
     try:
         exc = fut.exception()
-    except Exception as cancelled:  # a cancelled future (scheduler lost) raises instead of returning
+    except BaseException as cancelled:  # a cancelled future (scheduler lost) raises instead of returning
         exc = cancelled
-    if type(exc).__name__ == "KilledWorker":
-        msg = "worker died while running this subject, on every attempt (out of memory or a crash in native code?)"
+    if isinstance(exc, JobDied):
+        msg = f"{exc}, on {'each of ' + str(attempts) + ' attempts' if attempts > 1 else 'its only attempt'}"
+    elif isinstance(exc, JobFailed):
+        msg = f"internal error ({exc}) after {attempts} attempt(s)"
+    elif type(exc).__name__ == "KilledWorker":
+        msg = "the dask worker running this subject died on every attempt (out of memory?)"
     elif isinstance(exc, (InputError, FitError)):
         msg = _error_text(exc)
     else:
-        msg = " ".join(f"internal error ({type(exc).__name__}: {exc}) after all retries".split())
-    return SubjectResult(s.id, "error", float("nan"), msg, str(dst))
+        msg = f"internal error ({type(exc).__name__}: {exc}) after {attempts} attempt(s)"
+    return SubjectResult(s.id, "error", float("nan"), " ".join(msg.split()), str(dst))
 
 
-def _progress(console, enabled: bool):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+class _BatchProgress:
+    """Subjects done of N, elapsed, estimate: a rich bar on a terminal, one plain line per subject otherwise."""
 
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    TimeRemainingColumn(), TextColumn("{task.fields[status]}"), console=console, disable=not enabled,
-                    transient=False)
+    def __init__(self, console, enabled: bool, total: int, skipped: int):
+        self.console, self.enabled, self.total, self.done = console, enabled, total, 0
+        self.t0 = time.perf_counter()
+        self.bar = None
+        if enabled and console.is_terminal:
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                       TimeRemainingColumn)
+
+            self.bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                                TimeRemainingColumn(), TextColumn("{task.fields[status]}"), console=console,
+                                transient=False)
+            self.task = self.bar.add_task("subjects", total=total, status=f"{skipped} skipped")
+
+    def __enter__(self):
+        if self.bar is not None:
+            self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.__exit__(*exc)
+
+    def advance(self, subject: str, r: SubjectResult, status: str) -> None:
+        self.done += 1
+        if self.bar is not None:
+            self.bar.update(self.task, advance=1, description=subject, status=status)
+        elif self.enabled:
+            from .progress import _clock
+
+            el = time.perf_counter() - self.t0
+            left = el / self.done * (self.total - self.done)
+            self.console.print(f"batch [{self.done}/{self.total}] {_clock(el)} elapsed, ~{_clock(left)} left  "
+                               f"{subject}: {r.status}{(' (' + r.error + ')') if r.error else ''}; {status}",
+                               markup=False, highlight=False, soft_wrap=True)
+
+
+def _progress(console, enabled: bool, total: int, skipped: int) -> _BatchProgress:
+    return _BatchProgress(console, enabled, total, skipped)
 
 
 def run_batch(manifest: str | os.PathLike | Sequence[Subject], out: str | os.PathLike, *,
@@ -450,9 +626,7 @@ def run_batch(manifest: str | os.PathLike | Sequence[Subject], out: str | os.Pat
             results[s.id] = SubjectResult(s.id, "skipped", 0.0, "", str(dst))
         else:
             todo.append((s, dst))
-            # staging folders left by a worker killed mid-job (the runner's and the job's nested one)
-            for stale in [*out.glob(f".{s.id}.staging-*"), *out.glob(f"..{s.id}.staging-*")]:
-                shutil.rmtree(stale, ignore_errors=True)
+            _remove_leftovers(out, s.id)  # left by a batch killed mid-job
 
     def ordered():
         return [results[s.id] for s in subjects if s.id in results]
@@ -464,34 +638,76 @@ def run_batch(manifest: str | os.PathLike | Sequence[Subject], out: str | os.Pat
         console = Console(stderr=True)
     n_workers = 0
     t0 = t1 = time.perf_counter()
+    started_ns = time.time_ns() - 1_000_000_000  # file times have coarse resolution on some file systems
     if todo:
-        from distributed import as_completed
+        with _termination_raises(), _quiet_dask():
+            try:
+                n_workers, t0 = _run_todo(todo, subjects, results, ordered, csv_path, out, job_ref, job_kwargs,
+                                          scheduler, workers, retries, progress, console, started_ns)
+            except KeyboardInterrupt as exc:
+                from .errors import Interrupted
 
-        with _quiet_dask(), dask_client(scheduler, workers) as client:
-            n_workers = len(client.nthreads())
-            t0 = time.perf_counter()
-            futures = {}
+                for s, _ in todo:
+                    _remove_leftovers(out, s.id)
+                done = sum(r.status in ("ok", "skipped") for r in results.values())
+                sig = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
+                raise Interrupted(sig, f": batch stopped; {out / BATCH_CSV} lists {len(results)} subject(s) "
+                                       f"({done} complete); rerun the same command to resume") from None
+        t1 = time.perf_counter()
+    return BatchResult(tuple(ordered()), out, csv_path, time.perf_counter() - t_start, t1 - t0, n_workers)
+
+
+@contextlib.contextmanager
+def _termination_raises() -> Iterator[None]:
+    """SIGTERM raises `Interrupted` (as SIGINT raises KeyboardInterrupt) while the batch runs, in the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    from .errors import Interrupted
+
+    def handler(signum, frame):
+        raise Interrupted(signum)
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _run_todo(todo, subjects, results, ordered, csv_path, out, job_ref, job_kwargs, scheduler, workers, retries,
+              progress, console, started_ns):
+    from distributed import as_completed
+
+    with dask_client(scheduler, workers) as client:
+        n_workers = len(client.nthreads())
+        t0 = time.perf_counter()
+        futures = {}
+        try:
             for s, dst in todo:
                 fut = client.submit(run_subject_task, s.id, str(s.path), str(dst), job_ref, job_kwargs,
                                     key=f"personalize-{s.id}-{uuid.uuid4().hex[:8]}", pure=False, retries=retries)
                 futures[fut] = (s, dst)
             counts = {"ok": 0, "error": 0}
-            with _progress(console, progress) as bar:
-                task = bar.add_task("subjects", total=len(todo), status=f"{len(results)} skipped")
+            n_skipped = len(subjects) - len(todo)
+            with _progress(console, progress, len(todo), n_skipped) as bar:
                 for fut in as_completed(futures):
                     s, dst = futures[fut]
-                    if fut.status == "finished":
-                        r = SubjectResult(**fut.result())
-                    else:
-                        r = _failure_row(s, dst, fut)
+                    try:
+                        r = SubjectResult(**fut.result()) if fut.status == "finished" else \
+                            _failure_row(s, dst, fut, retries + 1, started_ns)
+                    except Exception:  # KilledWorker, a lost scheduler...: still this subject's row, never the batch's end
+                        r = _failure_row(s, dst, fut, retries + 1, started_ns)
                     results[s.id] = r
                     counts[r.status] += 1
                     write_batch_csv(csv_path, ordered())
-                    bar.update(task, advance=1, description=s.id,
-                               status=f"{counts['ok']} ok, {counts['error']} error, {len(subjects) - len(todo)} skipped")
+                    bar.advance(s.id, r, f"{counts['ok']} ok, {counts['error']} error, {n_skipped} skipped")
                     fut.release()
-            t1 = time.perf_counter()
-    return BatchResult(tuple(ordered()), out, csv_path, time.perf_counter() - t_start, t1 - t0, n_workers)
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+    return n_workers, t0
 
 
 def print_batch(result: BatchResult, console) -> None:
@@ -509,3 +725,7 @@ def print_batch(result: BatchResult, console) -> None:
     c = result.counts
     console.print(f"{c['ok']} ok, {c['error']} error, {c['skipped']} skipped (already complete); "
                   f"table in {result.csv}")
+
+
+if __name__ == "__main__":  # a subject's job in a process of its own (see run_subject_task)
+    sys.exit(_child_main(sys.argv[1]))

@@ -57,3 +57,19 @@ def environment_job(subject_dir: Path, out: Path, progress=None) -> dict:
     """Report the worker's thread and allocator environment."""
     keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "MALLOC_TRIM_THRESHOLD_")
     return {"env": {k: os.environ.get(k) for k in keys}}
+
+
+def fault_job(subject_dir: Path, out: Path, progress=None) -> dict:
+    """The fault named in ``subject_dir/fault.txt`` ("exit": os._exit(3); "segv": a null-pointer read), else
+    `label_volume_job` (an InputError for corrupt labels)."""
+    fault_file = Path(subject_dir) / "fault.txt"
+    fault = fault_file.read_text().strip() if fault_file.exists() else ""
+    (Path(out) / "partial.txt").write_text("must never be published")
+    if fault == "exit":
+        os._exit(3)
+    if fault == "segv":
+        import ctypes
+
+        ctypes.string_at(0)
+    (Path(out) / "partial.txt").unlink()
+    return label_volume_job(subject_dir, out)

@@ -159,3 +159,41 @@ def test_batch_command_refuses_unknown_job(tmp_path, capsys):
                  "--job", "cohort_jobs.flaky_job"]) == 2
     assert "--workers: 0 is outside 1-256" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()              # refused before anything is written
+
+
+@pytest.mark.slow
+def test_batch_survives_dying_jobs_three_times(tmp_path, phantom_subject):
+    """Done-when: 6 subjects, one job exits its process, one segfaults, one has a corrupt input; 3 runs into one --out."""
+    names = ["s1", "s2", "exit", "s4", "segv", "bad"]
+    manifest = _cohort(tmp_path, phantom_subject, names)
+    (tmp_path / "data" / "exit" / "fault.txt").write_text("exit")
+    (tmp_path / "data" / "segv" / "fault.txt").write_text("segv")
+    labels = tmp_path / "data" / "bad" / "labels.nii.gz"
+    labels.write_bytes(labels.read_bytes()[:200])
+    out = tmp_path / "out"
+    base = ["batch", str(manifest), "--out", str(out), "--workers", "2", "--retries", "1", "--job", f"{JOBS}.fault_job"]
+    expected = {"s1": "ok", "s2": "ok", "exit": "error", "s4": "ok", "segv": "error", "bad": "error"}
+    first = None
+    for run, extra in enumerate(([], [], ["--rerun"])):
+        assert _exit_code(base + extra) == 1                    # documented: 1 when some subject failed
+        rows = _csv_rows(out / "batch.csv")
+        assert list(rows) == names
+        status = {s: r["status"] for s, r in rows.items()}
+        if run == 1:                                           # resumed: the complete subjects are skipped
+            assert status == {s: ("skipped" if v == "ok" else v) for s, v in expected.items()}
+        else:
+            assert status == expected
+        assert rows["exit"]["error"] == ("the job's process exited with code 3 without a result, "
+                                         "on each of 2 attempts")
+        assert rows["segv"]["error"].startswith("the job's process killed by SIGSEGV (a crash in native code)")
+        assert rows["bad"]["error"].startswith("input error: ") and "labels.nii.gz" in rows["bad"]["error"]
+        errors = {s: rows[s]["error"] for s in ("exit", "segv", "bad")}
+        assert first is None or errors == first               # the same rows every time
+        first = errors
+        for s in ("s1", "s2", "s4"):
+            assert is_complete(out / s) and sorted(p.name for p in (out / s).iterdir()) == ["summary.json", "volumes.json"]
+            v = json.loads((out / s / "volumes.json").read_text())["bones"]["femur_r"]
+            assert v["labels_ml"] == pytest.approx(v["mesh_ml"], rel=0.05)
+        for s in ("exit", "segv", "bad"):
+            assert not (out / s).exists()                      # nothing published for a failed subject
+        assert sorted(p.name for p in out.iterdir()) == sorted(["batch.csv", "s1", "s2", "s4"])  # no staging left
