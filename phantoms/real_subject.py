@@ -1,0 +1,494 @@
+"""A phantom subject folder on real anatomy: trials, markers, truth model and label volume.
+
+`write_real_subject` writes what a gait lab and a radiology department hand
+over for one subject whose skeleton is an expert-built model of real bones
+(`phantoms.real_anatomy`), seen through any marker set
+(`kinematics.marker_sets`), in any lab orientation (`phantoms.lab`), with
+body-build soft tissue and palpation error (`phantoms.marker_placement`).
+
+Motion (model coordinates, gait2392 names; the expert's joint axes):
+
+* ``static``: standing as scanned (hip and knee angles of the scan pose, ankle
+  and subtalar 0, the femurs vertical in the sagittal plane, the lowest foot
+  point on the floor) for ``static_frames`` frames;
+* ``gait_NN``: walking at 1.25 m/s on the normative curves of
+  `phantoms.motion` (hip flexion relative to 10 deg of standing pelvic tilt,
+  knee flexion 4-59 deg, ankle -16..10 deg), the left side half a cycle later;
+* ``functional_hip`` (optional): star arcs of 40 deg, right hip then left hip.
+
+Markers: the placed sites (rigid on their bodies) plus a soft-tissue artefact
+linear in the driving joint angles, as in `phantoms.motion` (segment amplitudes
+over the reference excursions: thigh 10-20 mm, shank 5-15 mm, pelvis 4-6 mm,
+foot 2-3 mm; bony markers 20-60 % of their segment's; a CAST plate moves
+rigidly), and white noise.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from kinematics.errors import InputError
+from kinematics.marker_sets import MarkerDef, MarkerSet, resolve_marker_set
+from kinematics.markers import MarkerTrial
+
+from .lab import Lab, make_lab
+from .marker_placement import PlacedMarker, place_markers
+from .real_anatomy import RealAnatomy
+
+__all__ = ["standing_coordinates", "coordinate_signs", "real_gait_coordinates", "real_functional_coordinates",
+           "truth_model", "write_real_subject", "RealTrial", "make_real_trials"]
+
+_X, _Y, _Z = np.eye(3)
+
+
+def _fk(model, q):
+    from kinematics.fk import forward_kinematics
+
+    return forward_kinematics(model, np.atleast_2d(q))
+
+
+def _joint_origin(model, st, joint):
+    j = next(jj for jj in model.joints if jj.name == joint)
+    b = model.body_index(j.parent)
+    return st.rotations[:, b] @ j.parent_offset.translation + st.positions[:, b]
+
+
+def _lowest_foot(anat: RealAnatomy, st, frame=0) -> float:
+    ys = []
+    for bone in [b for b in anat.meshes if b.startswith(("calcn", "toes"))]:
+        k = anat.model.body_index(anat.bone_body[bone])
+        V = np.asarray(anat.local_meshes[bone].vertices)
+        ys.append(float((V @ st.rotations[frame, k].T + st.positions[frame, k])[:, 1].min()))
+    return min(ys)
+
+
+def standing_coordinates(anat: RealAnatomy) -> np.ndarray:
+    """The standing pose (n_q,): scan-pose hip/knee angles, femurs vertical, feet on the floor (y = 0)."""
+    m = anat.model
+    q = anat.scan_q.copy()
+    for i, n in enumerate(m.coordinate_names):
+        if n.startswith(("ankle_", "subtalar_", "mtp_")):
+            q[i] = 0.0
+    it = m.coordinate_index("pelvis_tilt")
+    for _ in range(3):
+        st = _fk(m, q)
+        d = np.mean([(_joint_origin(m, st, f"knee_{s}") - _joint_origin(m, st, f"hip_{s}"))[0] for s in anat.sides], axis=0)
+        q[it] -= np.arctan2(d[0], -d[1])            # rotate about Z until hip -> knee points straight down
+    st = _fk(m, q)
+    q[m.coordinate_index("pelvis_ty")] -= _lowest_foot(anat, st)
+    return q
+
+
+def coordinate_signs(anat: RealAnatomy, q0: np.ndarray) -> dict:
+    """+1/-1 per coordinate kind so that a positive step is flexion, adduction, internal rotation, dorsiflexion.
+
+    Found by finite differences of the model on the right (or first) side: hip flexion moves the knee
+    centre forward, adduction medially, internal rotation turns the lateral epicondyle forward; knee
+    flexion moves the ankle centre back; dorsiflexion lifts the toes.
+    """
+    m = anat.model
+    s = anat.sides[0]
+    lat = _Z if s == "r" else -_Z
+    out = {}
+
+    def moved(coord, point_fn):
+        q = q0.copy()
+        a = point_fn(_fk(m, q))
+        q[m.coordinate_index(coord)] += 0.05
+        return point_fn(_fk(m, q)) - a
+
+    knee = lambda st: _joint_origin(m, st, f"knee_{s}")[0]  # noqa: E731
+    ankle = lambda st: _joint_origin(m, st, f"ankle_{s}")[0]  # noqa: E731
+    fem = m.body_index(f"femur_{s}")
+    cal = m.body_index(f"calcn_{s}")
+
+    def lat_point(st):
+        k = _joint_origin(m, st, f"knee_{s}")[0]
+        R = st.rotations[0, fem]
+        j = next(jj for jj in m.joints if jj.name == f"knee_{s}")
+        ax = R @ j.parent_offset.rotation[:, 2]
+        return k + 0.05 * (ax if ax @ lat > 0 else -ax)
+
+    toe = lambda st: st.rotations[0, cal] @ np.array([0.0, 0.0, 0.0]) + st.positions[0, cal]  # noqa: E731
+    heel_to_toe = None
+    out["hip_flexion"] = np.sign(moved(f"hip_flexion_{s}", knee) @ _X)
+    out["hip_adduction"] = np.sign(-(moved(f"hip_adduction_{s}", knee) @ lat))
+    out["hip_rotation"] = np.sign(moved(f"hip_rotation_{s}", lat_point) @ _X)
+    out["knee_angle"] = np.sign(-(moved(f"knee_angle_{s}", ankle) @ _X))
+    # dorsiflexion: a point 10 cm in front of the ankle on the foot rises
+    a0 = _joint_origin(m, _fk(m, q0), f"ankle_{s}")[0]
+    st0 = _fk(m, q0)
+    pf = m.body_index(f"calcn_{s}")
+    loc = st0.rotations[0, pf].T @ (a0 + 0.1 * _X - st0.positions[0, pf])
+
+    def fore(st):
+        return st.rotations[0, pf] @ loc + st.positions[0, pf]
+
+    out["ankle_angle"] = np.sign(moved(f"ankle_angle_{s}", fore) @ _Y)
+    out["subtalar_angle"] = 1.0
+    del toe, heel_to_toe
+    return {k: float(v) if v != 0 else 1.0 for k, v in out.items()}
+
+
+def real_gait_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, rate: float, cycles: float = 2.0,
+                          speed: float = 1.25, cycle_time: float = 1.1, rng=None) -> np.ndarray:
+    """Walking (F, n_q) on `phantoms.motion`'s normative curves in the expert model's coordinates."""
+    from .motion import _GAIT, _periodic
+
+    m = anat.model
+    rng = rng or np.random.default_rng(0)
+    F = max(int(round(cycles * cycle_time * rate)), 2)
+    t = np.arange(F) / rate
+    ph0 = rng.uniform(0, 1)
+    q = np.repeat(q0[None], F, axis=0)
+    ix = m.coordinate_index
+    names = set(m.coordinate_names)
+    for s, shift in (("r", 0.0), ("l", 0.5)):
+        if f"hip_flexion_{s}" not in names:
+            continue
+        phase = t / cycle_time + ph0 + shift
+        for key, coord, offset in (("hip_flexion", "hip_flexion", 10.0), ("hip_adduction", "hip_adduction", 0.0),
+                                   ("hip_rotation", "hip_rotation", 0.0), ("knee_flexion", "knee_angle", 0.0),
+                                   ("ankle_angle", "ankle_angle", 0.0), ("subtalar_angle", "subtalar_angle", 0.0)):
+            name = f"{coord}_{s}"
+            if name not in names:
+                continue
+            gain = rng.uniform(0.92, 1.08)
+            curve = gain * _periodic(_GAIT[key], phase) - np.radians(offset)
+            q[:, ix(name)] = q0[ix(name)] + signs[coord] * curve
+    phase = t / cycle_time + ph0
+    q[:, ix("pelvis_tilt")] += np.radians(1.5) * np.sin(4 * np.pi * phase)
+    q[:, ix("pelvis_list")] += np.radians(4.0) * np.sin(2 * np.pi * phase)
+    q[:, ix("pelvis_rotation")] += np.radians(5.0) * np.sin(2 * np.pi * phase + np.pi / 2)
+    q[:, ix("pelvis_tx")] += speed * t
+    q[:, ix("pelvis_ty")] += 0.015 * np.cos(4 * np.pi * phase) - 0.01
+    q[:, ix("pelvis_tz")] += 0.015 * np.sin(2 * np.pi * phase)
+    return q
+
+
+def real_functional_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, rate: float,
+                                range_deg: float = 40.0) -> np.ndarray:
+    """Star-arc hip calibration (Camomilla et al. 2006): 8 excursions then a circumduction, right then left."""
+    m = anat.model
+    R = np.radians(range_deg)
+    n_out, n_circ = max(int(round(rate)), 4), max(int(round(2 * rate)), 8)
+    flex, abd = [], []
+    for psi in np.radians(np.arange(0, 360, 45)):
+        s_ = 0.5 * (1 - np.cos(2 * np.pi * np.arange(n_out) / n_out))
+        flex.append(R * np.cos(psi) * s_)
+        abd.append(R * np.sin(psi) * s_)
+    a = 2 * np.pi * np.arange(n_circ) / n_circ
+    flex.append(R * np.sin(a))
+    abd.append(R * (1 - np.cos(a)) / 2)
+    flex, abd = np.concatenate(flex), np.concatenate(abd)
+    n1 = flex.size
+    q = np.repeat(q0[None], 2 * n1, axis=0)
+    ix = m.coordinate_index
+    for k, s in enumerate(anat.sides):
+        sl = slice(k * n1, (k + 1) * n1)
+        q[sl, ix(f"hip_flexion_{s}")] += signs["hip_flexion"] * flex
+        q[sl, ix(f"hip_adduction_{s}")] -= signs["hip_adduction"] * abd
+        q[sl, ix(f"knee_angle_{s}")] += signs["knee_angle"] * np.radians(10) * np.abs(flex) / R
+    return q
+
+
+# --------------------------------------------------------------------------- truth model
+def truth_model(anat: RealAnatomy, lab: Lab, placed: dict[str, PlacedMarker] | None = None):
+    """The truth skeleton with ground = the lab frame (ground_pelvis parent frame = `lab`) and the placed markers."""
+    from kinematics.joints import CustomJoint, Transform
+    from kinematics.model import Marker
+
+    m = anat.model
+    joints = []
+    for j in m.joints:
+        if j.parent == "ground":
+            j = CustomJoint(j.name, j.parent, j.child, j.coordinates, Transform(lab.lab_from_model, lab.origin),
+                            j.child_offset, rotations=j.rotations, translations=j.translations, kind_name="custom")
+        joints.append(j)
+    markers = tuple(Marker(p.label, p.body, np.asarray(p.offset, float)) for p in (placed or {}).values())
+    return m.replace(joints=tuple(joints), markers=markers, gravity=-9.80665 * lab.up, name=m.name)
+
+
+# --------------------------------------------------------------------------- soft-tissue artefact
+_DRIVERS = {"pelvis": ("hip_flexion_r", "hip_flexion_l"),
+            "femur": ("hip_flexion_{s}", "hip_adduction_{s}", "hip_rotation_{s}", "knee_angle_{s}"),
+            "tibia": ("knee_angle_{s}", "ankle_angle_{s}"),
+            "calcn": ("ankle_angle_{s}", "subtalar_angle_{s}"), "toes": ("ankle_angle_{s}", "subtalar_angle_{s}")}
+_REF = {"hip_flexion": 0.6, "hip_adduction": 0.15, "hip_rotation": 0.3, "knee_angle": 1.05, "ankle_angle": 0.35,
+        "subtalar_angle": 0.1}
+
+
+def _sta_coefficients(anat, placed, q0, seed, scale):
+    """Per marker: (driver columns, coefficients (3, k) m/rad in the body frame)."""
+    from .motion import _AMPLITUDE
+
+    m = anat.model
+    rng = np.random.default_rng([int(seed), 11])
+    groups: dict[str, list[PlacedMarker]] = {}
+    for p in placed.values():
+        groups.setdefault(p.body, []).append(p)
+    out = {}
+    amps = {}
+    for body, ps in groups.items():
+        key = body.split("_")[0]
+        if key not in _DRIVERS:
+            continue
+        side = body[-1] if key != "pelvis" else ""
+        drv = [d.format(s=side) for d in _DRIVERS[key] if d.format(s=side) in m.coordinate_names]
+        k = len(drv)
+        ref = np.array([_REF[d.rsplit("_", 1)[0]] for d in drv])
+        g = rng.normal(size=(3, k)) * 0.01
+        w = rng.normal(size=(3, k)) * 0.12
+        pts = np.array([p.offset for p in ps])
+        c = pts.mean(axis=0)
+        amp = rng.uniform(*_AMPLITUDE["calcn" if key == "toes" else key]) * scale
+        amps[body] = amp
+        for p in ps:
+            rigid = g + np.cross(w.T, p.offset - c).T
+            e = np.zeros((3, k)) if p.kind == "cluster" else rng.normal(size=(3, k)) * 0.004
+            C = rigid + e
+            peak = np.linalg.norm(C * ref)
+            lo, hi = (0.2, 0.6) if p.kind == "landmark" else (0.8, 1.0)
+            f = rng.uniform(lo, hi) if p.kind != "cluster" else 1.0
+            out[p.label] = ([m.coordinate_index(d) for d in drv], C * (amp * f / peak if peak > 0 else 0.0))
+    return out, amps
+
+
+# --------------------------------------------------------------------------- trials
+class RealTrial:
+    """One trial: name, kind, q (F, n_q), time (F,), markers (MarkerTrial, lab), clean (F, M, 3) lab."""
+
+    def __init__(self, name, kind, q, time, markers, clean):
+        self.name, self.kind, self.q, self.time, self.markers, self.clean = name, kind, q, time, markers, clean
+
+
+def make_real_trials(anat: RealAnatomy, lab: Lab, placed: dict, q0, signs, seed: int, *, rate: float = 100.0,
+                     gait_trials: int = 1, gait_cycles: float = 2.0, functional: bool = True, static_frames: int = 200,
+                     sta: bool = True, sta_scale: float = 1.0, noise_sd: float = 0.0005,
+                     static_only: tuple = ()) -> list[RealTrial]:
+    """Static, gait and (optionally) functional trials of the placed markers (no file written)."""
+    from kinematics.fk import point_positions
+
+    model = truth_model(anat, lab, placed)
+    labels = [p for p in placed]
+    bodies = np.array([model.body_index(placed[n].body) for n in labels])
+    offs = np.array([placed[n].offset for n in labels])
+    coefs, _ = _sta_coefficients(anat, placed, q0, seed, sta_scale) if sta else ({}, {})
+    rng = np.random.default_rng([int(seed), 23])
+    trials = []
+
+    def add(name, kind, q):
+        st = _fk(model, q)
+        clean = point_positions(model, st, bodies, offs)
+        pos = clean.copy()
+        for j, n in enumerate(labels):
+            if n in coefs:
+                cols, C = coefs[n]
+                local = (q[:, cols] - q0[cols]) @ C.T
+                pos[:, j] += np.einsum("fij,fj->fi", st.rotations[:, bodies[j]], local)
+        r2 = np.random.default_rng([int(seed), 29, len(trials)])
+        if noise_sd > 0:
+            pos = pos + r2.normal(scale=noise_sd, size=pos.shape)
+        keep = [j for j, n in enumerate(labels) if kind == "static" or n not in static_only]
+        names = tuple(labels[j] for j in keep)
+        time = np.arange(q.shape[0]) / rate
+        mt = MarkerTrial(names, pos[:, keep], float(rate), time, f"{name}", {"subject": f"phantom_{anat.name}_{seed}"})
+        trials.append(RealTrial(name, kind, q, time, mt, clean[:, keep]))
+
+    add("static", "static", np.repeat(q0[None], max(int(static_frames), 1), axis=0))
+    for i in range(gait_trials):
+        add(f"gait_{i + 1:02d}", "gait", real_gait_coordinates(anat, q0, signs, rate, gait_cycles, rng=rng))
+    if functional:
+        add("functional_hip", "functional", real_functional_coordinates(anat, q0, signs, rate))
+    return trials
+
+
+def _save_truth_osim(model, anat: RealAnatomy, path: Path, geometry_dir: Path | None):
+    from kinematics.opensim_io import import_opensim, to_opensim, write_osim
+
+    om = to_opensim(model)
+    if geometry_dir is not None:
+        osim = import_opensim()
+        bs = om.getBodySet()
+        for bone, body in anat.bone_body.items():
+            f = geometry_dir / f"{bone}.stl"
+            if f.is_file():
+                g = osim.Mesh(f"geometry/{bone}.stl")
+                g.setName(bone)
+                bs.get(body).attachGeometry(g)
+    om.finalizeConnections()
+    return write_osim(om, path)
+
+
+def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab | str = "y-up", walk: str = "+x",
+                       build: str = "adult", seed: int = 0, voxel=(1e-3, 1e-3, 1e-3), noise: float = 0.0,
+                       fibula_mesh: bool = True, labels: bool = True, meshes: bool = True, gait_trials: int = 1,
+                       functional: bool = True, static_frames: int = 200, static_name: str = "static",
+                       trial_format: str = "c3d", sta: bool = True, sta_scale: float = 1.0,
+                       noise_sd: float = 0.0005, palpation: bool = True, rate: float = 100.0,
+                       progress: Callable[[str], None] | None = None) -> dict:
+    """Write a real-anatomy phantom subject into `out_dir` (stage it with `kinematics.atomic.staged_dir`).
+
+    Files: ``labels.nii.gz`` + ``label_map.json`` (voxelised meshes, scanner frame), ``meshes/<bone>.ply``
+    (mm, scanner), trials ``<static_name>.c3d|.trc``, ``gait_NN``, ``functional_hip`` (lab frame, mm),
+    ``markers.json`` (`kinematics.marker_sets`), ``subject.json`` (SI), ``truth_model.osim`` (ground = lab,
+    the placed markers, ``geometry/<bone>.stl`` in body frames), ``truth.json`` (m) and ``truth/``
+    (``<trial>.mot`` true coordinates, ``<trial>_centres.trc`` true hip/knee/ankle centres,
+    ``<trial>_markers.trc`` artefact-free noise-free markers; lab frame).
+
+    Parameters
+    ----------
+    marker_set : preset name, markers.json path or `kinematics.marker_sets.MarkerSet`
+    lab : `phantoms.lab.Lab` or ``"z-up"``/``"y-up"`` (with `walk`, e.g. ``"+x"``)
+    build : ``child``, ``adult`` or ``obese`` (soft tissue, `phantoms.marker_placement`)
+    fibula_mesh : write the fibula as its own bone; False: the fibula is a second component of the tibia
+    trial_format : ``c3d``, ``trc`` or ``both``; static_name : stem of the static trial (``Static`` ...)
+    static_frames : frames of the static trial; functional : write the functional hip trial
+
+    Returns
+    -------
+    dict: the truth.json content.
+    """
+    import trimesh
+
+    from kinematics.atomic import inside, write_text
+    from kinematics.c3d import write_c3d
+    from kinematics.marker_sets import write_marker_set
+    from kinematics.storage import write_mot, write_trc
+
+    from .imaging import write_label_nifti, write_ply_mm
+    from .real_anatomy import mesh_label_volume
+
+    say = progress or (lambda m: None)
+    if trial_format not in ("c3d", "trc", "both"):
+        raise InputError("--format", f"{trial_format!r} is not one of c3d, trc, both")
+    if not static_name or any(c in static_name for c in "/\\.") :
+        raise InputError("--static-name", f"{static_name!r} is not a file stem")
+    if not (1 <= int(static_frames) <= 100000):
+        raise InputError("--static-frames", f"{static_frames} is outside 1-100000")
+    out = Path(out_dir)
+    lab = make_lab(lab, walk) if isinstance(lab, str) else lab
+    ms = resolve_marker_set(marker_set)
+    q0 = standing_coordinates(anat)
+    signs = coordinate_signs(anat, q0)
+    say("placing markers")
+    placed, tissue = place_markers(anat, q0, ms, build, seed, palpation=palpation)
+    if not placed:
+        raise InputError("--marker-set", f"no marker of {ms.name!r} lies on a body of the model")
+    static_only = tuple(k for k in placed if ms.markers[k].static_only)
+    trials = make_real_trials(anat, lab, placed, q0, signs, seed, rate=rate, gait_trials=gait_trials,
+                              functional=functional, static_frames=static_frames, sta=sta, sta_scale=sta_scale,
+                              noise_sd=noise_sd, static_only=static_only)
+    model = truth_model(anat, lab, placed)
+    # ---- imaging
+    bones_out = {}
+    for b, mesh in anat.meshes.items():
+        if not fibula_mesh and b.startswith("fibula_"):
+            continue
+        if not fibula_mesh and b.startswith("tibia_"):
+            fib = anat.meshes[f"fibula_{b[-1]}"]
+            mesh = trimesh.util.concatenate([mesh, fib])
+        bones_out[b] = mesh
+    if labels:
+        say("voxelising")
+        lab_vol, affine, lmap = mesh_label_volume(bones_out, voxel=voxel, noise=noise, seed=seed,
+                                                  progress=lambda b: say(f"voxelising {b}"))
+        write_label_nifti(inside(out, "labels.nii.gz"), lab_vol, affine)
+        write_text(inside(out, "label_map.json"), json.dumps(lmap, indent=1) + "\n")
+    if meshes:
+        for b, mesh in bones_out.items():
+            write_ply_mm(inside(out, f"meshes/{b}.ply"), mesh,
+                         f"personalize real-anatomy phantom {anat.name} bone {b}\nunits mm\nframe scanner"
+                         + (" (mirrored)" if b in anat.mirrored else ""))
+    geo = inside(out, "geometry")
+    geo.mkdir(parents=True, exist_ok=True)
+    for b, mesh in anat.local_meshes.items():
+        mesh.export(geo / f"{b}.stl")
+    # ---- trials and truth
+    truth_dir = inside(out, "truth")
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    coords = list(model.coordinate_names)
+    rot = [c.name for c in model.coordinates if c.kind == "rotational"]
+    centre_names = {f"{j}_{s}": f"{s.upper()}{j[0].upper()}JC" for s in anat.sides for j in ("hip", "knee", "ankle")}
+    listing = []
+    for tr in trials:
+        stem = static_name if tr.kind == "static" else tr.name
+        if trial_format in ("c3d", "both"):
+            write_c3d(inside(out, f"{stem}.c3d"), tr.markers)
+        if trial_format in ("trc", "both"):
+            write_trc(inside(out, f"{stem}.trc"), tr.markers)
+        write_mot(inside(truth_dir, f"{tr.name}.mot"), coords, tr.time, tr.q, rotational=rot)
+        st = _fk(model, tr.q)
+        cen = np.stack([_joint_origin(model, st, j) for j in centre_names], axis=1)
+        write_trc(inside(truth_dir, f"{tr.name}_centres.trc"),
+                  MarkerTrial(tuple(centre_names.values()), cen, tr.markers.rate, tr.time, "centres"))
+        write_trc(inside(truth_dir, f"{tr.name}_markers.trc"),
+                  MarkerTrial(tr.markers.names, tr.clean, tr.markers.rate, tr.time, "markers"))
+        listing.append({"name": tr.name, "file": stem, "kind": tr.kind, "frames": int(tr.q.shape[0])})
+        say(tr.name)
+    _save_truth_osim(model, anat, inside(out, "truth_model.osim"), geo)
+    written = MarkerSet(ms.name, {k: MarkerDef(ms.markers[k].segment if ms.markers[k].segment in model.body_names
+                                               else placed[k].body, ms.markers[k].landmark, ms.markers[k].static_only)
+                                  for k in placed})
+    write_marker_set(inside(out, "markers.json"), written)
+    # ---- what the lab measures (tape and calliper on the skin), SI
+    st0 = _fk(model, q0)
+    mk = {n: trials[0].clean[0, i] for i, n in enumerate(trials[0].markers.names)}
+    hjc = {s: _joint_origin(model, st0, f"hip_{s}")[0] for s in anat.sides}
+    kjc = {s: _joint_origin(model, st0, f"knee_{s}")[0] for s in anat.sides}
+    ajc = {s: _joint_origin(model, st0, f"ankle_{s}")[0] for s in anat.sides}
+    lms = {}
+    from .marker_placement import MARKER_RADIUS, find_landmarks
+
+    for name, (bone, p) in find_landmarks(anat, q0).items():
+        k = model.body_index(anat.bone_body[bone])
+        lms[name] = st0.rotations[0, k] @ p + st0.positions[0, k]
+    subject = {"units": "m, kg"}
+    for s, side in (("r", "right"), ("l", "left")):
+        if s not in anat.sides:
+            continue
+        P = s.upper()
+        subject[f"{side}_leg_length"] = float(np.linalg.norm(lms[f"{P}ASI"] - kjc[s]) + np.linalg.norm(kjc[s] - lms[f"{P}MMA"]) + 0.01)
+        subject[f"{side}_knee_width"] = float(np.linalg.norm(lms[f"{P}KNE"] - lms[f"{P}MFC"]) + 2 * tissue.get(f"{P}KNE", 0.005))
+        subject[f"{side}_ankle_width"] = float(np.linalg.norm(lms[f"{P}ANK"] - lms[f"{P}MMA"]) + 2 * tissue.get(f"{P}ANK", 0.003))
+    femur_len = float(np.linalg.norm(hjc[anat.sides[0]] - kjc[anat.sides[0]]))
+    height = round(femur_len / 0.245, 3)       # femur length ~ 24.5 % of stature (Trotter & Gleser)
+    bmi = {"child": 17.0, "adult": 23.0, "obese": 34.0}[build]
+    subject.update({"inter_asis_distance": float(np.linalg.norm(lms["RASI"] - lms["LASI"])),
+                    "marker_diameter": 2 * MARKER_RADIUS, "height": height, "mass": round(bmi * height**2, 1)})
+    write_text(inside(out, "subject.json"), json.dumps(subject, indent=1) + "\n")
+    # ---- truth.json
+    joints = {k: {"origin": o.tolist(), "rotation": R.tolist()} for k, (o, R) in anat.joints_scanner.items()}
+    truth = {
+        "units": "m, rad", "kind": "real-anatomy phantom",
+        "anatomy": {"name": anat.name, **anat.sources, "mirrored_bones": list(anat.mirrored),
+                    "mirroring": None if anat.symmetry is None else {
+                        "how": "pelvis symmetry S(x) = M x + c: reflection about the expert pelvis frame's "
+                               "sagittal plane refined by ICP of the mirrored pelvis onto itself",
+                        "M": anat.symmetry[0].tolist(), "c": anat.symmetry[1].tolist()},
+                    "fibula": anat.fibula_from, "fibula_mesh_written": bool(fibula_mesh),
+                    "bone_body": anat.bone_body},
+        "joints": {"frame": "scanner (scan pose); rotation columns X, Y, Z; Z = the joint's flexion axis",
+                   "joints": joints},
+        "image": {"file": "labels.nii.gz" if labels else None, "voxel_m": list(map(float, np.broadcast_to(voxel, 3))),
+                  "noise": float(noise), "noise_seed": int(seed), "affine_units": "mm",
+                  "meshes": "meshes/<bone>.ply in mm, scanner frame" if meshes else None},
+        "lab": lab.to_json(),
+        "model": {"file": "truth_model.osim", "ground": "lab frame", "coordinates": coords,
+                  "standing_q": dict(zip(coords, map(float, q0))), "signs": signs,
+                  "scan_q": dict(zip(coords, map(float, anat.scan_q)))},
+        "marker_set": ms.name,
+        "tissue": {"build": build, "thickness_m": tissue, "model": "phantoms.marker_placement.TISSUE_CLASSES"},
+        "markers": {k: {**p.to_json(), "segment": written.markers[k].segment,
+                        "static_only": written.markers[k].static_only} for k, p in placed.items()},
+        "landmarks_lab_standing_m": {k: v.tolist() for k, v in lms.items()},
+        "motion": {"rate_hz": float(rate), "trials": listing, "functional_trial": bool(functional),
+                   "static_frames": int(static_frames), "format": trial_format, "static_file": static_name,
+                   "noise_sd_m": float(noise_sd), "soft_tissue_artefact": bool(sta), "sta_scale": float(sta_scale),
+                   "palpation": bool(palpation)},
+    }
+    write_text(inside(out, "truth.json"), json.dumps(truth, indent=1) + "\n")
+    return truth
