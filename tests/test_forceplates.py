@@ -20,12 +20,50 @@ def plates(trial):
     return read_force_plates(trial)
 
 
-def _modified(trial, tmp_path, edit):
-    ezc3d = pytest.importorskip("ezc3d")
-    c = ezc3d.c3d(str(trial))
-    edit(c)
-    out = tmp_path / "modified.c3d"
-    c.write(str(out))
+# Modified copies of the trial, written by ezc3d in a child process: once opensim's SWIG module is
+# loaded (other test files), ezc3d's own SWIG wrappers refuse the parameter shapes in this process.
+_EDITS = r"""
+import sys
+import numpy as np
+import ezc3d
+
+src, out = sys.argv[1], sys.argv[2]
+
+def load():
+    return ezc3d.c3d(src)
+
+c = load()  # plate 1 shrunk to 30 % about its centre: its CoPs fall outside
+corners = np.array(c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"], float)
+centre = corners[:, :, 0].mean(axis=1, keepdims=True)
+corners[:, :, 0] = centre + 0.3 * (corners[:, :, 0] - centre)
+c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"] = corners
+c.write(out + "/shrunk.c3d")
+
+c = load()  # no force platform
+c["parameters"]["FORCE_PLATFORM"]["USED"]["value"] = np.array([0])
+c.write(out + "/noplates.c3d")
+
+c = load()  # plate 1 as type 4 with a calibration matrix (gain 2, cross-talk fx' = 2 fx + 0.5 fy)
+cal = np.diag([2.0] * 6)
+cal[0, 1] = 0.5
+c["parameters"]["FORCE_PLATFORM"]["TYPE"]["value"] = np.array([4, 2, 2, 2])
+c.add_parameter("FORCE_PLATFORM", "CAL_MATRIX", np.repeat(cal[:, :, None], 4, axis=2))
+c.write(out + "/type4.c3d")
+
+c = load()  # type 4 without a calibration matrix
+c["parameters"]["FORCE_PLATFORM"]["TYPE"]["value"] = np.array([4, 2, 2, 2])
+c.write(out + "/type4_nocal.c3d")
+"""
+
+
+@pytest.fixture(scope="module")
+def modified(trial, tmp_path_factory):
+    import subprocess
+    import sys
+
+    pytest.importorskip("ezc3d")
+    out = tmp_path_factory.mktemp("c3d")
+    subprocess.run([sys.executable, "-c", _EDITS, str(trial), str(out)], check=True, capture_output=True)
     return out
 
 
@@ -104,14 +142,8 @@ def test_two_feet_on_one_plate_flagged(trial, plates):
     assert c.plate == 3 and "two feet" in c.flags and c.foot is None and not c.usable
 
 
-def test_cop_outside_plate_flagged(trial, tmp_path):
-    def shrink(c):
-        corners = np.array(c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"], float)
-        centre = corners[:, :, 0].mean(axis=1, keepdims=True)
-        corners[:, :, 0] = centre + 0.3 * (corners[:, :, 0] - centre)  # plate 1 shrunk to 30 %
-        c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"] = corners
-
-    fp = read_force_plates(_modified(trial, tmp_path, shrink))
+def test_cop_outside_plate_flagged(trial, modified):
+    fp = read_force_plates(modified / "shrunk.c3d")
     p = fp[0]
     assert p.cop_outside.sum() > 10 and any("outside" in n for n in p.notes)
     from kinematics.c3d import read_c3d
@@ -138,24 +170,13 @@ def test_analog_rate_not_consistent_refused(trial, tmp_path):
         read_force_plates(bad)
 
 
-def test_no_plates_kinematics_only(trial, tmp_path):
-    def drop(c):
-        c["parameters"]["FORCE_PLATFORM"]["USED"]["value"] = np.array([0])
-
-    fp = read_force_plates(_modified(trial, tmp_path, drop))
+def test_no_plates_kinematics_only(modified):
+    fp = read_force_plates(modified / "noplates.c3d")
     assert len(fp) == 0 and "kinematics only" in fp.notes[0] and fp.n_frames == 323
 
 
-def test_type4_calibration_matrix(trial, tmp_path, plates):
-    cal = np.diag([2.0, 2.0, 2.0, 2.0, 2.0, 2.0])
-    cal[0, 1] = 0.5  # cross-talk term: fx' = 2 fx + 0.5 fy
-
-    def type4(c):
-        fp = c["parameters"]["FORCE_PLATFORM"]
-        fp["TYPE"]["value"] = np.array([4, 2, 2, 2])
-        c.add_parameter("FORCE_PLATFORM", "CAL_MATRIX", np.repeat(cal[:, :, None], 4, axis=2))
-
-    fp4 = read_force_plates(_modified(trial, tmp_path, type4), threshold=40.0)
+def test_type4_calibration_matrix(trial, modified):
+    fp4 = read_force_plates(modified / "type4.c3d", threshold=40.0)  # cal: gain 2, fx' = 2 fx + 0.5 fy
     ref = read_force_plates(trial, zero="none", at="points")
     p, q = fp4[0], ref[0]
     assert p.type == 4
@@ -172,12 +193,9 @@ def test_type4_calibration_matrix(trial, tmp_path, plates):
     assert np.allclose(cp[:, 1], cq[:, 1], atol=1e-9)
 
 
-def test_missing_calibration_matrix_refused(trial, tmp_path):
-    def type4(c):
-        c["parameters"]["FORCE_PLATFORM"]["TYPE"]["value"] = np.array([4, 2, 2, 2])
-
+def test_missing_calibration_matrix_refused(modified):
     with pytest.raises(InputError, match="CAL_MATRIX"):
-        read_force_plates(_modified(trial, tmp_path, type4))
+        read_force_plates(modified / "type4_nocal.c3d")
 
 
 @pytest.mark.parametrize("fa", [1080.0, 1000.0, 600.0])
