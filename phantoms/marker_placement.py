@@ -342,7 +342,7 @@ def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int
                                          S.to_local(body, x), S.dir_local(body, d), t, None)
         elif base[:2] in _CLUSTERS and base[2:].isdigit():
             clusters.setdefault((base[:2], s), {})[int(base[2:])] = label
-        elif base == "Sacral":
+        elif base.endswith("Sacral"):
             deferred.append(label)
     for (pre, s), members in clusters.items():
         seg, frac, ang = _CLUSTERS[pre]

@@ -44,6 +44,23 @@ def phantom(
     motion: bool = typer.Option(True, "--motion/--no-motion",
                                 help="Also write motion trials (static, gait, crouch, functional hip C3Ds, truth/*.mot); needs --side both."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
+    anatomy: Path = typer.Option(None, "--anatomy", help="Folder of a real subject's bone meshes (mm; STAPLE names): "
+                                                         "build the phantom on them (needs --reference)."),
+    reference: Path = typer.Option(None, "--reference", help="Expert .osim of the --anatomy bones (bodies in the "
+                                                             "scanner frame): the truth skeleton."),
+    marker_set: str = typer.Option("pig", "--marker-set", help="pig, ior (bony landmarks), cast, opensim (gait2392 "
+                                                               "names) or a markers.json file."),
+    lab: str = typer.Option("z-up", "--lab", help="Lab vertical: z-up or y-up."),
+    walk: str = typer.Option("+x", "--walk", help="Walking direction: a horizontal lab axis (+x, -x, +y, -y, +z, -z)."),
+    tissue: str = typer.Option("adult", "--tissue", help="Body build of the soft-tissue prior: child, adult or obese."),
+    trial_format: str = typer.Option("c3d", "--format", help="Trial files: c3d, trc or both."),
+    static_name: str = typer.Option("static", "--static-name", help="File stem of the static trial (e.g. Static)."),
+    static_frames: int = typer.Option(200, "--static-frames", help="Frames of the static trial (100 Hz)."),
+    functional: bool = typer.Option(True, "--functional/--no-functional", help="Write the functional hip trial."),
+    fibula_mesh: bool = typer.Option(True, "--fibula-mesh/--no-fibula-mesh",
+                                     help="Fibula as its own bone, or as the tibia mesh's second component."),
+    sta: bool = typer.Option(True, "--sta/--no-sta", help="Soft-tissue artefact on the markers."),
+    marker_noise: float = typer.Option(0.5, "--marker-noise", help="Marker noise sd in mm."),
 ) -> None:
     """Write a synthetic subject: label volume, exact meshes, motion trials (C3D) and ground truth."""
     from rich.console import Console
@@ -65,6 +82,16 @@ def phantom(
     if not (0.0 <= growth_plates <= 10.0):
         raise InputError("--growth-plates", f"{growth_plates} mm is outside 0-10 mm")
     check_output_dir(out, overwrite=overwrite)
+    if anatomy is not None or reference is not None:
+        _real_phantom(out, anatomy, reference, seed=seed, voxel=voxel, noise=level, marker_set=marker_set, lab=lab,
+                      walk=walk, tissue=tissue, trial_format=trial_format, static_name=static_name,
+                      static_frames=static_frames, functional=functional, fibula_mesh=fibula_mesh, sta=sta,
+                      marker_noise=marker_noise, motion=motion)
+        return
+    if marker_set.strip().lower() != "pig" or lab != "z-up" or walk != "+x":
+        raise InputError("--marker-set" if marker_set.strip().lower() != "pig" else "--lab",
+                         "the analytic phantom has the Plug-in-Gait set in a z-up lab walking +x: "
+                         "use --anatomy/--reference for other marker sets and labs")
     ph = make_phantom(seed=seed, side=side_key, stature=stature, placement=placement)
     subset = None
     if bones.strip():
@@ -87,6 +114,40 @@ def phantom(
             write_subject(stage, ph, voxel=tuple(v / 1000.0 for v in voxel), noise=level, seed=seed,
                           bones=subset, motion=motion, progress=report, physes=growth_plates / 1000.0)
     typer.echo(f"wrote phantom (seed {seed}, {len(subset or ph.bone_names)} bones, voxel {list(voxel)} mm, noise {level}) to {out}")
+
+
+def _real_phantom(out: Path, anatomy: Path | None, reference: Path | None, *, seed, voxel, noise, marker_set, lab,
+                  walk, tissue, trial_format, static_name, static_frames, functional, fibula_mesh, sta,
+                  marker_noise, motion) -> None:
+    """``--anatomy DIR --reference MODEL.osim``: a phantom on real bones (`phantoms.real_subject`)."""
+    from rich.console import Console
+
+    from kinematics.marker_sets import resolve_marker_set
+    from phantoms.lab import make_lab
+    from phantoms.real_anatomy import load_real_anatomy
+    from phantoms.real_subject import write_real_subject
+
+    from ..outputs import replaced_dir
+
+    if anatomy is None or reference is None:
+        raise InputError("--anatomy" if anatomy is None else "--reference", "--anatomy and --reference go together")
+    if not motion:
+        raise InputError("--no-motion", "real-anatomy phantoms always write their trials")
+    if not (0.0 <= marker_noise <= 10.0):
+        raise InputError("--marker-noise", f"{marker_noise} mm is outside 0-10 mm")
+    lab_ = make_lab(lab, walk)
+    ms = resolve_marker_set(marker_set)
+    console = Console(stderr=True)
+    console.print(f"reading {anatomy} and {reference}")
+    anat = load_real_anatomy(anatomy, reference, progress=lambda m: console.print(m))
+    with replaced_dir(out) as stage:
+        write_real_subject(stage, anat, marker_set=ms, lab=lab_, build=tissue, seed=seed,
+                           voxel=tuple(v / 1000.0 for v in voxel), noise=noise, fibula_mesh=fibula_mesh,
+                           functional=functional, static_frames=static_frames, static_name=static_name,
+                           trial_format=trial_format, sta=sta, noise_sd=marker_noise / 1000.0,
+                           progress=lambda m: console.print(m))
+    typer.echo(f"wrote real-anatomy phantom ({anat.name}, marker set {ms.name}, lab {lab_.name} walking {walk}, "
+               f"{tissue} tissue, seed {seed}) to {out}")
 
 
 def register(app: typer.Typer) -> None:
