@@ -20,7 +20,18 @@ ALIASES: dict[str, str] = {
     "calcaneus_l": "calcn_l",
     "foot_r": "calcn_r",
     "foot_l": "calcn_l",
+    "tibia_no_fib_r": "tibia_r",
+    "tibia_no_fib_l": "tibia_l",
 }
+
+#: file stems of a whole foot in one mesh (tarsals, metatarsals, phalanges), side; a mesh folder's reader
+#: splits it into talus, calcn and toes (`personalize.whole_foot`); a label map's ``foot_r`` is the calcn
+WHOLE_FOOT: dict[str, str] = {"foot_r": "r", "foot_l": "l"}
+
+#: when several files name one bone, the stem read (the others are listed as ignored): the hip bones without
+#: the sacrum (what the pelvis detector expects), the tibia with its fibula (the fibula's lateral malleolus
+#: gives the tibial ISB frame); any other stem comes after these
+PREFERRED_STEMS: tuple[str, ...] = ("pelvis_no_sacrum", "tibia_r", "tibia_l")
 
 #: default integer label of each bone in a label volume (0 is background)
 DEFAULT_LABEL_MAP: dict[str, int] = {name: i + 1 for i, name in enumerate(BONE_NAMES)}

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .bones import DEFAULT_LABEL_MAP, canonical_bone_name, is_tissue_name
+from .bones import DEFAULT_LABEL_MAP, PREFERRED_STEMS, WHOLE_FOOT, canonical_bone_name, is_tissue_name
 from .errors import InputError
 
 __all__ = [
@@ -41,6 +41,8 @@ __all__ = [
 
 VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr")
 MESH_SUFFIXES = (".stl", ".ply", ".obj")
+#: point-cloud files (a PLY without faces is one too)
+POINT_SUFFIXES = (".pcd", ".xyz", ".xyzn", ".pts")
 
 #: plausible largest bounding-box extent (metres) of each bone type, (low, high);
 #: wide enough for children and for the real STAPLE meshes (whose ``tibia`` may
@@ -365,19 +367,67 @@ class MeshInput:
     report: dict = field(default_factory=dict)
 
 
-def _load_mesh_file(path: Path) -> trimesh.Trimesh:
+def _weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Merge coincident vertices, then drop the faces the merge collapsed and repeated faces.
+
+    Merging two coincident vertices is an edge collapse when they are joined
+    by an edge (the phantom's marching-cubes meshes have a few such
+    zero-length edges): the two faces on that edge lose a corner.  Keeping
+    them, as a plain vertex merge does, leaves each of their edges on three
+    faces (non-manifold).  Repeated faces (same corners, any winding; real
+    segmentations hold 8-fold copies of one triangle) are kept once.
+    STL files store every corner separately: the merge gives them topology.
+    """
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    uniq, inv = np.unique(v, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    f = inv[f]
+    collapsed = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    f = f[~collapsed]
+    _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+    n_rep = len(f) - len(first)
+    f = f[np.sort(first)]
+    used = np.unique(f)
+    remap = np.full(len(uniq), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    rep = {"merged_vertices": int(len(v) - len(uniq)), "collapsed_faces_removed": int(collapsed.sum()),
+           "duplicate_faces_removed": int(n_rep)}
+    return uniq[used], remap[f], rep
+
+
+def _load_mesh_file(path: Path) -> tuple[trimesh.Trimesh, dict]:
+    """Triangle mesh of a mesh or point-cloud file (file units) and what reading did to it.
+
+    A file without faces (PLY of vertices only, PCD, XYZ) is a point cloud:
+    its surface is reconstructed (`personalize.point_clouds.reconstruct_surface`).
+    """
+    if path.suffix.lower() in POINT_SUFFIXES:
+        from .point_clouds import read_point_cloud, reconstruct_surface
+
+        pts, nrm = read_point_cloud(path)
+        return reconstruct_surface(pts, nrm, source=path)
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
+        loaded = trimesh.load(str(path), process=False)
     except Exception as exc:
         raise InputError(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from None
+    if isinstance(loaded, trimesh.Scene):
+        geoms = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+        loaded = trimesh.util.concatenate(geoms) if geoms else None
+    if isinstance(loaded, trimesh.PointCloud) or (isinstance(loaded, trimesh.Trimesh) and len(loaded.faces) == 0
+                                                  and len(loaded.vertices)):
+        from .point_clouds import read_point_cloud, reconstruct_surface
+
+        pts, nrm = read_point_cloud(path)
+        return reconstruct_surface(pts, nrm, source=path)
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise InputError(path, "file holds no triangle faces")
     if not np.all(np.isfinite(loaded.vertices)):
         raise InputError(path, "mesh has non-finite vertex coordinates")
-    # merge duplicated vertices (STL has none shared) so topology is meaningful
-    mesh = trimesh.Trimesh(loaded.vertices, loaded.faces, process=True, validate=False)
-    mesh.remove_unreferenced_vertices()
-    return mesh
+    v, f, rep = _weld(loaded.vertices, loaded.faces)
+    if len(f) == 0:
+        raise InputError(path, "file holds no triangle faces with three distinct corners")
+    return trimesh.Trimesh(v, f, process=False, validate=False), rep
 
 
 def _centroid_volume(mesh: trimesh.Trimesh) -> float:
@@ -414,7 +464,49 @@ def _close_holes(mesh: trimesh.Trimesh, max_hole_edges: int = 200) -> trimesh.Tr
     except pymeshlab.PyMeshLabException:  # e.g. non-manifold edges: leave it open
         return mesh
     m = ms.current_mesh()
-    return trimesh.Trimesh(m.vertex_matrix(), m.face_matrix(), process=True)
+    v, f, _ = _weld(m.vertex_matrix(), m.face_matrix())
+    return trimesh.Trimesh(v, f, process=False, validate=False)
+
+
+def _nonmanifold_edge_count(faces: np.ndarray) -> int:
+    e = np.sort(np.asarray(faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(e, axis=0, return_counts=True)
+    return int(np.sum(counts > 2))
+
+
+def _repair_nonmanifold(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Remove the faces that make edges non-manifold (pymeshlab, then its vertex split), re-weld."""
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int32)))
+    ms.meshing_repair_non_manifold_edges(method="Remove Faces")
+    ms.meshing_repair_non_manifold_vertices()
+    m = ms.current_mesh()
+    v, f, _ = _weld(m.vertex_matrix(), m.face_matrix())
+    return trimesh.Trimesh(v, f, process=False, validate=False)
+
+
+def _islands(mesh: trimesh.Trimesh, min_island_fraction: float):
+    """Connected parts (by edges) and which are kept (area >= fraction x the largest)."""
+    parts = mesh.split(only_watertight=False)
+    if len(parts) == 0:
+        return [], np.zeros(0, bool)
+    areas = np.array([p.area for p in parts])
+    return parts, areas >= min_island_fraction * areas.max()
+
+
+def main_extent(mesh: trimesh.Trimesh, min_island_fraction: float = 0.01) -> float:
+    """Largest bounding-box extent of a mesh without its small islands (file units).
+
+    Stray specks far from the bone (a segmentation's mislabelled voxels) must
+    not decide the unit or the plausibility of the bone's size.
+    """
+    parts, keep = _islands(mesh, min_island_fraction)
+    if not len(parts):
+        return float(np.max(mesh.extents))
+    v = np.concatenate([p.vertices for p, k in zip(parts, keep) if k])
+    return float(np.max(v.max(axis=0) - v.min(axis=0)))
 
 
 def check_and_repair_mesh(mesh: trimesh.Trimesh, bone: str, source: str | os.PathLike, *,
@@ -422,36 +514,56 @@ def check_and_repair_mesh(mesh: trimesh.Trimesh, bone: str, source: str | os.Pat
                           max_hole_fraction: float = 0.1) -> tuple[trimesh.Trimesh, dict]:
     """Validate a bone mesh; repair what is unambiguous, refuse the rest.
 
-    * non-manifold edges (shared by > 2 faces): refused.
-    * islands with area < `min_island_fraction` x the largest component: removed.
+    * coincident vertices merged, the faces this collapses and repeated
+      faces removed (`_weld`; also done on reading);
+    * non-manifold edges (shared by > 2 faces): the offending faces removed
+      (pymeshlab), the holes this opens closed below;
+    * islands with area < `min_island_fraction` x the largest component: removed;
     * open components: holes whose boundary loop is shorter than
       `max_hole_fraction` x the bone's largest extent are closed (pymeshlab);
       larger holes (missing anatomy) -> refused,
-      except ``toes_*`` (open in the real data), which are flagged.
-    * components whose winding is inconsistent: re-wound and oriented outward.
+      except ``toes_*`` (open in the real data), which are flagged;
+    * components whose winding is inconsistent: re-wound and oriented outward;
     * a mesh whose faces consistently point inward (negative volume): refused
       unless `fix_orientation`, then inverted.
 
-    Returns the repaired mesh and a report dict.
+    Returns the repaired mesh and a report dict; ``report["repairs"]`` lists
+    in words what was changed.
+
+    Raises
+    ------
+    InputError
+        What could not be repaired (the bone cannot be used).
     """
     report: dict = {"islands_removed": [], "winding_repaired_components": 0, "inverted": False,
-                    "holes_closed": False, "open": False}
-    edges = mesh.edges_sorted
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    n_nonmanifold = int(np.sum(counts > 2))
-    if n_nonmanifold and not bone.startswith("toes"):
-        raise InputError(source, f"non-manifold mesh ({n_nonmanifold} edges shared by more than two faces)")
+                    "holes_closed": False, "open": False, "repairs": []}
+    v, f, wrep = _weld(mesh.vertices, mesh.faces)
+    if wrep["collapsed_faces_removed"] or wrep["duplicate_faces_removed"] or wrep["merged_vertices"]:
+        mesh = trimesh.Trimesh(v, f, process=False, validate=False)
+    n_nonmanifold = _nonmanifold_edge_count(mesh.faces)
     report["nonmanifold_edges"] = n_nonmanifold
-    parts = mesh.split(only_watertight=False)
+    nm_note = ""
+    if n_nonmanifold:
+        n0 = len(mesh.faces)
+        mesh = _repair_nonmanifold(mesh)
+        left = _nonmanifold_edge_count(mesh.faces)
+        report["nonmanifold_faces_removed"] = int(n0 - len(mesh.faces))
+        nm_note = f"non-manifold mesh ({n_nonmanifold} edges shared by more than two faces)"
+        if left:
+            raise InputError(source, f"{nm_note}: {left} remain after repair")
+        report["repairs"].append(f"{n_nonmanifold} non-manifold edges repaired "
+                                 f"({report['nonmanifold_faces_removed']} faces removed)")
+    parts, keep = _islands(mesh, min_island_fraction)
     if len(parts) == 0:
         raise InputError(source, "mesh has no connected faces")
-    areas = np.array([p.area for p in parts])
-    keep = areas >= min_island_fraction * areas.max()
-    for p, a, k in zip(parts, areas, keep):
+    for p, k in zip(parts, keep):
         if not k:
             report["islands_removed"].append({"faces": int(len(p.faces))})
+    if report["islands_removed"]:
+        report["repairs"].append(f"{len(report['islands_removed'])} small islands removed "
+                                 f"({sum(i['faces'] for i in report['islands_removed'])} faces)")
     kept = []
-    scale = float(np.max(mesh.extents))
+    scale = main_extent(mesh, min_island_fraction)
     inverted_parts = 0
     for p in (p for p, k in zip(parts, keep) if k):
         if not p.is_watertight:
@@ -462,7 +574,8 @@ def check_and_repair_mesh(mesh: trimesh.Trimesh, bone: str, source: str | os.Pat
             elif bone.startswith("toes"):
                 report["open"] = True
             else:
-                raise InputError(source, "open mesh (not watertight) with holes too large to close "
+                raise InputError(source, (f"{nm_note}, open after repair: " if nm_note else "open mesh (not watertight) ")
+                                 + "with holes too large to close "
                                  f"(largest boundary loop {_largest_hole_perimeter(p):.3g} m)")
         if not p.is_winding_consistent:
             trimesh.repair.fix_winding(p)
@@ -483,51 +596,81 @@ def check_and_repair_mesh(mesh: trimesh.Trimesh, bone: str, source: str | os.Pat
             raise InputError(source, f"inside-out mesh (faces of {inverted_parts} of {len(kept)} closed parts point "
                              "inward); re-export with outward normals or pass --fix-orientation")
         report["inverted"] = True
+        report["repairs"].append("inside-out mesh inverted")
+    if report["holes_closed"]:
+        report["repairs"].append("small holes closed")
+    if report["winding_repaired_components"]:
+        report["repairs"].append(f"winding made consistent in {report['winding_repaired_components']} part(s)")
     out = trimesh.util.concatenate(kept) if len(kept) > 1 else kept[0]
     return out, report
 
 
 def _bone_files(folder: Path) -> tuple[dict[str, Path], list[str]]:
+    """Bone (or whole-foot stem ``foot_r``) -> file chosen in `folder`, and the file names not read.
+
+    Several files for one bone: a preferred stem (`personalize.bones.PREFERRED_STEMS`),
+    then the canonical stem, then a mesh over a point cloud.
+    """
     files: dict[str, list[Path]] = {}
     ignored: list[str] = []
     for f in sorted(folder.iterdir()):
         if not f.is_file() or f.name.startswith("."):
             continue
-        if f.suffix.lower() not in MESH_SUFFIXES:
+        if f.suffix.lower() not in MESH_SUFFIXES + POINT_SUFFIXES:
             continue
-        bone = canonical_bone_name(f.stem)
+        stem = f.stem.strip().lower().replace("-", "_").replace(" ", "_")
+        bone = stem if stem in WHOLE_FOOT else canonical_bone_name(f.stem)
         if bone is None:
             ignored.append(f.name)
             continue
         files.setdefault(bone, []).append(f)
     chosen: dict[str, Path] = {}
+
+    def rank(c: Path, bone: str) -> tuple:
+        stem = c.stem.lower()
+        return (stem not in PREFERRED_STEMS, stem != bone, c.suffix.lower() in POINT_SUFFIXES, c.name)
+
     for bone, cands in files.items():
-        if len(cands) > 1:
-            # the issue's naming: prefer the exact STAPLE names, and for the
-            # pelvis prefer `pelvis_no_sacrum` (the hip bones) over `pelvis`
-            pref = [c for c in cands if c.stem.lower() == "pelvis_no_sacrum"] or \
-                   [c for c in cands if c.stem.lower() == bone] or cands
-            pick = pref[0]
-            ignored.extend(c.name for c in cands if c != pick)
-            chosen[bone] = pick
-        else:
-            chosen[bone] = cands[0]
+        pick = min(cands, key=lambda c: rank(c, bone))
+        ignored.extend(c.name for c in cands if c != pick)
+        chosen[bone] = pick
+    for foot, side in WHOLE_FOOT.items():
+        if foot in chosen and any(f"{b}_{side}" in chosen for b in ("talus", "calcn", "toes")):
+            ignored.append(chosen.pop(foot).name)      # the foot's own bones are given: read those
     return chosen, ignored
+
+
+def _unit_candidates(bone: str, extent: float) -> list[str]:
+    lo, hi = PLAUSIBLE_EXTENT_M[_bone_type(bone)]
+    return [u for u, k in (("mm", 1e-3), ("m", 1.0)) if lo <= extent * k <= hi]
 
 
 def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | None = None,
                               fix_orientation: bool = False) -> tuple[dict[str, MeshInput], dict]:
-    """Read a folder of bone meshes (STL, PLY, OBJ) named after the bones.
+    """Read a folder of bone meshes or point clouds named after the bones.
 
-    Returns per-bone `MeshInput` (metres) and a folder report (unit, ignored files).
-    All meshes of a folder must share one unit.
+    Files: ``<bone>.stl|ply|obj`` (``femur_r``, ``tibia_no_fib_r``,
+    ``pelvis_no_sacrum``, ... see `personalize.bones`), point clouds
+    ``<bone>.ply|pcd|xyz`` without faces (surface reconstructed), and a whole
+    foot as one mesh (``foot_r``: split into talus, calcn and toes where its
+    bones are separate pieces, `personalize.whole_foot`).
+
+    One bad bone does not stop the rest: a file that cannot be read, whose
+    size is implausible for its name, or whose mesh cannot be repaired is left
+    out and listed in the folder report's ``rejected`` (bone -> "file:
+    problem"); the joints that need it are then missing.
+
+    Returns per-bone `MeshInput` (metres) and a folder report (unit, ignored
+    files, rejected bones, notes).  All meshes of a folder must share one unit.
 
     Raises
     ------
     InputError
-        Missing folder, no recognised bone file, requested bone missing,
-        unreadable/non-manifold/inside-out mesh, implausible or mixed units.
+        Missing folder, no recognised bone file, no usable bone, a requested
+        bone missing or unusable, mixed units.
     """
+    from .bones import WHOLE_FOOT
+
     folder = Path(path)
     if not folder.exists():
         raise InputError(folder, "folder not found")
@@ -537,31 +680,85 @@ def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | Non
     if not chosen:
         raise InputError(folder, "no bone mesh found (expected files like femur_r.ply, tibia_r.stl, pelvis_no_sacrum.obj)")
     if bones is not None:
-        missing = [b for b in bones if b not in chosen]
+        from_feet = {f"{b}_{s}" for k, s in WHOLE_FOOT.items() if k in chosen for b in ("talus", "calcn", "toes")}
+        missing = [b for b in bones if b not in chosen and b not in from_feet]
         if missing:
             raise InputError(folder, f"no mesh for bone(s) {', '.join(missing)}")
-        chosen = {b: chosen[b] for b in bones}
-    out: dict[str, MeshInput] = {}
-    units: dict[str, str] = {}
+        chosen = {b: f for b, f in chosen.items()
+                  if b in bones or (b in WHOLE_FOOT and any(x.endswith("_" + WHOLE_FOOT[b]) for x in from_feet & set(bones)))}
+    errors: dict[str, InputError] = {}
+    loaded: dict[str, tuple[Path, trimesh.Trimesh, dict, float]] = {}
     for bone, f in chosen.items():
-        mesh = _load_mesh_file(f)
-        unit = detect_mesh_unit(bone, float(np.max(mesh.extents)), f)
-        units[bone] = unit
-        mesh.apply_scale(_UNIT_SCALE[unit])
-        mesh, rep = check_and_repair_mesh(mesh, bone, f, fix_orientation=fix_orientation)
-        rep["units_detected"] = unit
-        out[bone] = MeshInput(name=bone, mesh=mesh, source=str(f), unit=unit, report=rep)
-    if len(set(units.values())) > 1:
-        odd = min(units, key=lambda b: list(units.values()).count(units[b]))
-        raise InputError(chosen[odd], f"units differ within the folder ({units[odd]} here, "
-                         f"{'m' if units[odd] == 'mm' else 'mm'} for the other bones)")
-    return out, {"unit": next(iter(units.values())), "ignored_files": ignored}
+        try:
+            mesh, lrep = _load_mesh_file(f)
+            loaded[bone] = (f, mesh, lrep, main_extent(mesh))
+        except InputError as exc:
+            errors[bone] = exc
+    # one unit per folder: the unit every bone of plausible size agrees with
+    cands = {b: _unit_candidates("calcn" if b in WHOLE_FOOT else b, ext) for b, (_, _, _, ext) in loaded.items()}
+    votes = [c[0] for c in cands.values() if len(c) == 1]
+    unit = max(set(votes), key=votes.count) if votes else None
+    for bone, c in cands.items():
+        f = loaded[bone][0]
+        if unit is not None and c and unit not in c:
+            raise InputError(f, f"units differ within the folder ({c[0]} here, {unit} for the other bones)")
+        if not c:
+            try:
+                detect_mesh_unit("calcn" if bone in WHOLE_FOOT else bone, loaded[bone][3], f)
+            except InputError as exc:
+                errors[bone] = exc
+    out: dict[str, MeshInput] = {}
+    for bone, (f, mesh, lrep, _) in loaded.items():
+        if bone in errors:
+            continue
+        use = unit or cands[bone][0]
+        mesh.apply_scale(_UNIT_SCALE[use])
+        try:
+            mesh, rep = check_and_repair_mesh(mesh, "calcn" if bone in WHOLE_FOOT else bone, f,
+                                              fix_orientation=fix_orientation)
+        except InputError as exc:
+            errors[bone] = exc
+            continue
+        for k in ("merged_vertices", "collapsed_faces_removed", "duplicate_faces_removed"):
+            rep[k] = lrep.get(k, 0) + rep.get(k, 0)
+        words = {"collapsed_faces_removed": "faces collapsed by merging coincident vertices removed",
+                 "duplicate_faces_removed": "repeated faces removed"}
+        rep["repairs"] = [f"{rep[k]} {w}" for k, w in words.items() if rep[k]] + rep["repairs"]
+        rep["repairs"] += lrep.get("repairs", [])
+        rep.update({k: v for k, v in lrep.items() if k not in rep})
+        rep["units_detected"] = use
+        out[bone] = MeshInput(name=bone, mesh=mesh, source=str(f), unit=use, report=rep)
+    notes: list[str] = []
+    for foot, side in WHOLE_FOOT.items():
+        if foot not in out:
+            continue
+        from .whole_foot import split_whole_foot
+
+        mi = out.pop(foot)
+        tib = out.get(f"tibia_{side}")
+        pieces, note = split_whole_foot(mi.mesh, side, tibia=tib.mesh if tib is not None else None)
+        notes.append(f"{Path(mi.source).name}: {note}")
+        for b, m in pieces.items():
+            out[b] = MeshInput(name=b, mesh=m, source=mi.source, unit=mi.unit,
+                               report=dict(mi.report, whole_foot=note))
+    if bones is not None:
+        bad = [b for b in bones if b in errors]
+        if bad:
+            raise errors[bad[0]]
+        out = {b: m for b, m in out.items() if b in bones}
+    if not out:
+        if errors:
+            raise next(iter(errors.values()))
+        raise InputError(folder, "no usable bone mesh")
+    rejected = {b: str(e) for b, e in errors.items()}
+    return out, {"unit": unit or next(iter(out.values())).unit, "ignored_files": ignored, "rejected": rejected,
+                 "notes": notes}
 
 
-def read_mesh_folder(path: str | os.PathLike) -> dict[str, trimesh.Trimesh]:
+def read_mesh_folder(path: str | os.PathLike, bones: list[str] | None = None) -> dict[str, trimesh.Trimesh]:
     """Bone meshes of a folder, canonical name -> trimesh in metres (input frame).
 
-    See `read_mesh_folder_detailed` for the checks and repairs.
+    See `read_mesh_folder_detailed` for the checks, repairs and the bones left out.
     """
-    meshes, _ = read_mesh_folder_detailed(path)
+    meshes, _ = read_mesh_folder_detailed(path, bones=bones)
     return {k: v.mesh for k, v in meshes.items()}

@@ -45,6 +45,7 @@ from .io import (LabelVolume, is_label_volume_path, read_label_volume, read_mesh
 
 __all__ = [
     "BoneSurface",
+    "BoneSurfaces",
     "PointCloud",
     "clean_mask",
     "extract_surface",
@@ -432,6 +433,24 @@ def surface_distance(a: trimesh.Trimesh, b: trimesh.Trimesh, n: int = 20000, see
             "b_to_a": float(dba.mean()), "max": float(both.max()), "rms": float(np.sqrt(np.mean(both**2)))}
 
 
+class BoneSurfaces(dict):
+    """Bone name -> `BoneSurface`, plus what reading left out.
+
+    Attributes
+    ----------
+    rejected : dict[str, str]
+        Bone -> "file: problem" for each bone whose file could not be used;
+        the joints that need it are missing.
+    notes : list[str]
+        What was done to the input as a whole (a whole foot split, ...).
+    """
+
+    def __init__(self, *args, rejected: dict | None = None, notes: list | None = None, **kw):
+        super().__init__(*args, **kw)
+        self.rejected = dict(rejected or {})
+        self.notes = list(notes or [])
+
+
 # --------------------------------------------------------------------------- pipelines
 def _bone_boxes(labels: np.ndarray, label_values: list[int], slab: int = 16,
                 present_out: set | None = None) -> dict[int, tuple[slice, ...] | None]:
@@ -589,15 +608,17 @@ def load_bones(path: str | os.PathLike, label_map: str | os.PathLike | dict | No
 
     Returns
     -------
-    dict[str, BoneSurface]
-        Canonical bone name -> surface, metres, input frame.
+    BoneSurfaces
+        Canonical bone name -> surface, metres, input frame; for a mesh
+        folder, ``rejected`` lists the bones left out (bone -> "file: problem")
+        and ``notes`` what was done to the folder (a whole foot split, ...).
     """
     p = Path(path)
     if not p.exists():
         raise InputError(p, "file or folder not found")
     if p.is_dir():
         meshes, folder_rep = read_mesh_folder_detailed(p, bones=bones, fix_orientation=fix_orientation)
-        out = {}
+        out = BoneSurfaces(rejected=folder_rep["rejected"], notes=folder_rep["notes"])
         for name, mi in meshes.items():
             mesh = decimate(mi.mesh, target_faces) if target_faces else mi.mesh
             rep = dict(mi.report, frame="input", ignored_files=folder_rep["ignored_files"])

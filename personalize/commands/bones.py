@@ -35,7 +35,7 @@ def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: 
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from ..frames import joints_from_landmarks
+    from ..frames import joints_document, joints_from_landmarks
     from ..landmarks import detect_landmarks
     from ..surfaces import load_bones
 
@@ -54,15 +54,21 @@ def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: 
         prog.update(task, completed=0, description="detecting landmarks")
         ls = detect_landmarks(surfaces, progress=tick)
     joints, dropped = joints_from_landmarks(ls)
+    rejected = dict(getattr(surfaces, "rejected", {}))
+    for b, why in rejected.items():
+        ls.rejected.setdefault(b, why)
+    for j, why in dropped.items():
+        bad = [b for b in rejected if b in why]
+        if bad:
+            dropped[j] = why + "; " + "; ".join(f"{b} left out ({rejected[b]})" for b in bad)
     lm_json = ls.to_json()
     lm_json["input"] = str(input)
     lm_json["missing_bones"] = list(ls.missing)
-    j_json = {"units": "m", "frame": "input", "input": str(input),
-              "convention": "rotation columns are the joint frame's X, Y, Z axes; Z is the main rotation axis "
-                            "(hip and knee flexion, talocrural, subtalar, metatarsophalangeal); Z to the subject's "
-                            "right except subtalar (anterior)",
-              "joints": {k: v.to_json() for k, v in joints.items()},
-              "dropped": dropped}
+    lm_json["input_notes"] = list(getattr(surfaces, "notes", []))
+    lm_json["inputs"] = {b: {"source": s.source, "repairs": list(s.report.get("repairs", [])),
+                             **({"whole_foot": s.report["whole_foot"]} if "whole_foot" in s.report else {})}
+                         for b, s in surfaces.items()}
+    j_json = joints_document(joints, dropped, input=str(input))
     fits = ls.fits_json()
     with replaced_dir(out) as stage:
         for name, payload in (("landmarks.json", lm_json), ("joints.json", j_json), ("fits.json", fits)):
