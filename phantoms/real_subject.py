@@ -329,7 +329,7 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
                        functional: bool = True, static_frames: int = 200, static_name: str = "static",
                        trial_format: str = "c3d", sta: bool = True, sta_scale: float = 1.0,
                        noise_sd: float = 0.0005, palpation: bool = True, rate: float = 100.0,
-                       progress: Callable[[str], None] | None = None) -> dict:
+                       mesh_folder: str = "meshes", progress: Callable[[str], None] | None = None) -> dict:
     """Write a real-anatomy phantom subject into `out_dir` (stage it with `kinematics.atomic.staged_dir`).
 
     Files: ``labels.nii.gz`` + ``label_map.json`` (voxelised meshes, scanner frame), ``meshes/<bone>.ply``
@@ -347,6 +347,8 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     fibula_mesh : write the fibula as its own bone; False: the fibula is a second component of the tibia
     trial_format : ``c3d``, ``trc`` or ``both``; static_name : stem of the static trial (``Static`` ...)
     static_frames : frames of the static trial; functional : write the functional hip trial
+    mesh_folder : ``meshes`` (reference meshes beside a label volume) or ``bones`` (the subject's imaging IS a
+        mesh folder, as `personalize run` reads it when there is no label volume)
 
     Returns
     -------
@@ -400,7 +402,7 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
         write_text(inside(out, "label_map.json"), json.dumps(lmap, indent=1) + "\n")
     if meshes:
         for b, mesh in bones_out.items():
-            write_ply_mm(inside(out, f"meshes/{b}.ply"), mesh,
+            write_ply_mm(inside(out, f"{mesh_folder}/{b}.ply"), mesh,
                          f"personalize real-anatomy phantom {anat.name} bone {b}\nunits mm\nframe scanner"
                          + (" (mirrored)" if b in anat.mirrored else ""))
     geo = inside(out, "geometry")
@@ -475,7 +477,7 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
                    "joints": joints},
         "image": {"file": "labels.nii.gz" if labels else None, "voxel_m": list(map(float, np.broadcast_to(voxel, 3))),
                   "noise": float(noise), "noise_seed": int(seed), "affine_units": "mm",
-                  "meshes": "meshes/<bone>.ply in mm, scanner frame" if meshes else None},
+                  "meshes": f"{mesh_folder}/<bone>.ply in mm, scanner frame" if meshes else None},
         "lab": lab.to_json(),
         "model": {"file": "truth_model.osim", "ground": "lab frame", "coordinates": coords,
                   "standing_q": dict(zip(coords, map(float, q0))), "signs": signs,

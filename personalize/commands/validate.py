@@ -23,6 +23,11 @@ def validate(
     motion: bool = typer.Option(True, "--motion/--no-motion", help="Also write and use the motion-capture trials."),
     job: str = typer.Option("", "--job", help="Per-subject function module.function (default: the full pipeline "
                                               "when installed, else the surface stage)."),
+    realistic: bool = typer.Option(False, "--realistic", help="The realistic set: analytic, ICL-MRI and LHDL-CT "
+                                   "anatomy, four marker sets, z-up and y-up labs, child/adult/obese tissue, half "
+                                   "without a functional trial, label volumes and mesh folders."),
+    data: Path = typer.Option(None, "--data", help="Root of the real data (bones/, reference_models/) for --realistic; "
+                                                   "default ../shared/data."),
 ) -> None:
     """Run the pipeline on random phantom subjects and summarise its errors against truth."""
     from rich.console import Console
@@ -31,6 +36,14 @@ def validate(
     from ..validate import run_validation
 
     console = Console(stderr=True)
+    if realistic:
+        from ..validate import run_realistic_validation
+
+        res = run_realistic_validation(subjects, seed, out, data_root=data, scheduler=scheduler or None,
+                                       workers=workers, job=job or None, console=console)
+        print_batch(res.batch, console)
+        console.print(f"metrics: {res.metrics_csv}\nreport:  {res.report}")
+        return
     res = run_validation(subjects, seed, out, scheduler=scheduler or None, workers=workers, job=job or None,
                          motion=motion, console=console)
     print_batch(res.batch, console)
