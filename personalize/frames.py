@@ -1,28 +1,49 @@
 """Joint frames from bone landmarks (OpenSim / STAPLE conventions).
 
-Every joint frame is a rotation whose columns are the X, Y, Z axes in the
-input frame; Z is the joint's main rotation axis:
+Every joint has two frames, as an OpenSim joint has them: the ``parent``
+frame fixed in the proximal body and the ``child`` frame fixed in the distal
+body, both given in the input frame (rotation columns X, Y, Z; Z the joint's
+main rotation axis).  They coincide in the reference pose except for the hip
+(pelvis ISB frame / femur frame) and for a turn about Z at the knee and
+ankle (each body's own Y):
 
 ============  ===========================================  =================================
 joint         origin                                       Z (main axis) / Y hint
 ============  ===========================================  =================================
-hip           femoral head centre                          pelvis ISB frame (Z = LASI->RASI)
-knee          point of the condyle cylinder axis between   cylinder through the posterior
-              the condyles (condyle centres' midpoint      condyles, to the right
-              projected on it)                             / Y towards the hip centre
+hip           femoral head centre (cross-checked with the  parent: pelvis ISB frame
+              acetabulum sphere)                           (Z = LASI->RASI); child: femur,
+                                                           Y knee -> hip centre, Z knee axis
+knee          point of the knee axis between the condyles  knee axis (cross-checked
+              (cross-checked estimates, `femur`)           estimates), to the right
+                                                           / parent Y towards the hip centre,
+                                                           child Y along the tibia (ankle ->
+                                                           knee)
 ankle         talar dome cylinder centre (mid-dome)        talar dome axis, to the right
-                                                           / Y towards the knee centre
+                                                           / parent Y towards the knee centre,
+                                                           child Y the talus's superior
 subtalar      posterior talocalcaneal facet centre (on     subtalar axis, anterior
-              the axis; else the axis point closest to     / Y = foot superior
+              the axis; else the axis point closest to     / Y = foot superior (both)
               the ankle)
 mtp           midpoint of the 1st and 5th metatarsal       1st -> 5th head line, to the right
-              head centres                                 / Y = foot superior
+              head centres                                 / Y = foot superior (both)
 ============  ===========================================  =================================
+
+``origin`` / ``rotation`` of a `Joint` are its parent frame (the hip's
+pelvis-side frame), kept for existing readers; without a pelvis the hip is
+given from the femoral head alone: its child (femur) frame, the parent frame
+marked missing.
 
 ``frame_zy(z, y)`` keeps Z exactly and makes Y orthogonal to it
 (``X = Y x Z``), as the phantom truth does, so outputs and truth compare
-axis by axis.  Uncertainty: ``origin_cov`` is the covariance of the origin
-landmark; ``axis_sd_deg`` the 1-sd angle of the Z axis.
+axis by axis.
+
+Uncertainty: ``origin_cov`` is the covariance of the joint centre and
+``axis_sd_deg`` the 1-sd angle of the Z axis, each the sum of three terms:
+the fit (``origin_cov_detection``, ``axis_sd_detection_deg``), the spread of
+independent estimates that disagreed (`personalize.landmarks.crosscheck`),
+and a model-error term (`MODEL_ERROR`): how far a detected joint lies from an
+expert's hand-built one on real bones.  `joints_document` is the one writer of
+``joints.json``.
 """
 from __future__ import annotations
 
@@ -30,8 +51,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Joint", "frame_zy", "frame_yz", "closest_on_line", "joints_from_landmarks", "JOINT_NAMES",
-           "JOINT_BONES"]
+__all__ = ["Joint", "JointFrame", "frame_zy", "frame_yz", "closest_on_line", "joints_from_landmarks", "JOINT_NAMES",
+           "JOINT_BONES", "MODEL_ERROR", "joints_document", "JOINTS_CONVENTION", "without_model_error"]
 
 JOINT_NAMES = ("hip", "knee", "ankle", "subtalar", "mtp")
 
@@ -71,8 +92,40 @@ def closest_on_line(point, direction, q) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class JointFrame:
+    """One side's frame of a joint: the body it is fixed in, origin (m) and rotation, input frame.
+
+    ``missing`` says why the frame is not given (origin and rotation None);
+    ``axis_sd_deg`` the 1-sd angle of this frame's Z axis when it differs from
+    the joint's (the hip's femur frame).
+    """
+
+    body: str
+    origin: np.ndarray | None = None
+    rotation: np.ndarray | None = None
+    missing: str | None = None
+    axis_sd_deg: float | None = None
+
+    def to_json(self) -> dict:
+        if self.origin is None:
+            return {"body": self.body, "missing": self.missing or "not detected"}
+        out = {"body": self.body, "origin": np.round(self.origin, 9).tolist(),
+               "rotation": np.round(self.rotation, 9).tolist()}
+        if self.axis_sd_deg is not None:
+            out["axis_sd_deg"] = round(float(self.axis_sd_deg), 6)
+        return out
+
+
+@dataclass(frozen=True)
 class Joint:
-    """A joint frame in the input frame (metres)."""
+    """A joint in the input frame (metres): centre, main axis, both frames, uncertainty.
+
+    ``origin`` / ``rotation``: the parent frame (the child frame when the
+    parent body is missing); ``origin_cov`` (m²) and ``axis_sd_deg`` the
+    stated uncertainty (fit + spread + model error), ``origin_cov_detection``
+    and ``axis_sd_detection_deg`` the fit alone; ``cross_check`` how the
+    independent estimates agreed; ``model_error`` the model-error term used.
+    """
 
     name: str
     origin: np.ndarray
@@ -80,11 +133,64 @@ class Joint:
     rotation: np.ndarray
     axis_sd_deg: float
     flags: tuple = ()
+    parent: JointFrame | None = None
+    child: JointFrame | None = None
+    origin_cov_detection: np.ndarray | None = None
+    axis_sd_detection_deg: float | None = None
+    cross_check: dict | None = None
+    model_error: dict | None = None
 
     def to_json(self) -> dict:
-        return {"origin": np.round(self.origin, 9).tolist(), "origin_cov": np.round(self.origin_cov, 12).tolist(),
-                "rotation": np.round(self.rotation, 9).tolist(), "axis_sd_deg": round(float(self.axis_sd_deg), 6),
-                "flags": list(self.flags)}
+        out = {"origin": np.round(self.origin, 9).tolist(), "origin_cov": np.round(self.origin_cov, 12).tolist(),
+               "rotation": np.round(self.rotation, 9).tolist(), "axis_sd_deg": round(float(self.axis_sd_deg), 6),
+               "flags": list(self.flags)}
+        if self.parent is not None:
+            out["parent"] = self.parent.to_json()
+        if self.child is not None:
+            out["child"] = self.child.to_json()
+        if self.origin_cov_detection is not None:
+            out["origin_cov_detection"] = np.round(self.origin_cov_detection, 12).tolist()
+            out["axis_sd_detection_deg"] = round(float(self.axis_sd_detection_deg), 6)
+        if self.cross_check:
+            out["cross_check"] = self.cross_check
+        if self.model_error:
+            out["model_error"] = self.model_error
+        return out
+
+
+JOINTS_CONVENTION = ("rotation columns are the joint frame's X, Y, Z axes; Z is the main rotation axis (hip and knee "
+                     "flexion, talocrural, subtalar, metatarsophalangeal); Z to the subject's right except subtalar "
+                     "(anterior). 'parent' / 'child': the joint's frames fixed in the proximal / distal body (OpenSim); "
+                     "'origin' / 'rotation' repeat the parent frame (the child frame when the parent is missing). "
+                     "origin_cov (m^2) and axis_sd_deg include the fit, the spread of disagreeing estimates and a "
+                     "model-error term; *_detection the fit alone")
+
+
+def without_model_error(joint: dict) -> dict:
+    """A joints.json joint with the model-error term taken out of ``origin_cov`` and ``axis_sd_deg``.
+
+    For consumers whose covariance scales were calibrated on phantoms, where
+    the detectors' conventions and the truth's coincide (`personalize.pipeline`):
+    the fit and the spread of disagreeing estimates stay in.
+    """
+    me = joint.get("model_error")
+    if not me:
+        return joint
+    out = dict(joint)
+    out["origin_cov"] = (np.asarray(joint["origin_cov"], float) - me["centre_sd_m"] ** 2 * np.eye(3)).tolist()
+    out["axis_sd_deg"] = float(np.sqrt(max(float(joint["axis_sd_deg"]) ** 2 - me["axis_sd_deg"] ** 2, 0.0)))
+    return out
+
+
+def joints_document(joints: dict, dropped: dict, *, input: str | None = None, frame: str = "input") -> dict:
+    """The ``joints.json`` document (JSON-ready): units, frame, convention, joints, dropped."""
+    doc = {"units": "m", "frame": frame}
+    if input is not None:
+        doc["input"] = str(input)
+    doc["convention"] = JOINTS_CONVENTION
+    doc["joints"] = {k: v.to_json() for k, v in joints.items()}
+    doc["dropped"] = dict(dropped)
+    return doc
 
 
 def _flags(*bones) -> tuple:
@@ -98,6 +204,79 @@ def _flags(*bones) -> tuple:
     return tuple(out)
 
 
+#: Model-error term of the stated uncertainty, per joint: the joint-centre sd as a fraction of the
+#: joint's articular radius (femoral head, condyles, talar dome, posterior talocalcaneal facet,
+#: metatarsal head) and the axis sd in degrees.  It is the distance between a joint detected here
+#: and the one an expert built by hand on the same bones, which the fit covariance does not see
+#: (conventions of which surface defines the joint, non-circular articular arcs).  Chosen on
+#: one real set, checked on the other (`personalize.reference_models.calibrate_model_error`,
+#: ``benchmarks/landmarks.py --calibration``): one centre fraction and one axis sd pooled over
+#: the hip, knee, ankle and subtalar joints, not a constant per joint tuned to one subject.
+MODEL_ERROR = {k: {"centre": 0.020, "axis_deg": 1.2} for k in ("hip", "knee", "ankle", "subtalar")}
+MODEL_ERROR["mtp"] = {"centre": 0.1, "axis_deg": 3.0}       # no expert reference: a wide term
+#: articular radius used when the fit gives none (m)
+_DEFAULT_RADIUS = {"hip": 0.024, "knee": 0.024, "ankle": 0.021, "subtalar": 0.015, "mtp": 0.008}
+#: model sd of the acetabulum sphere centre as a hip-centre estimate, fraction of its radius (the
+#: lunate surface is a horseshoe, its sphere includes the cartilage gap)
+ACETABULUM_MODEL_SD = 0.1
+#: model sd of the femoral head sphere centre as a hip-centre estimate, fraction of its radius
+HEAD_MODEL_SD = 0.02
+
+
+def _scalar(b, key):
+    return float(b.scalars[key]) if b is not None and key in b.scalars else None
+
+
+def _radius(kind, *bones) -> float:
+    fem, tal, cal = (bones + (None, None, None))[:3]
+    r = None
+    if kind == "hip":
+        r = _scalar(fem, "femoral_head_radius")
+    elif kind == "knee":
+        rs = [_scalar(fem, f"{c}_condyle_b") for c in ("medial", "lateral")]
+        r = float(np.mean(rs)) if all(x is not None for x in rs) else None
+    elif kind == "ankle":
+        r = _scalar(tal, "talar_dome_radius")
+    elif kind == "subtalar" and tal is not None and "posterior_calcaneal_facet" in tal.fits:
+        r = float(tal.fits["posterior_calcaneal_facet"]["radius"])
+    return r if r is not None and np.isfinite(r) and r > 0 else _DEFAULT_RADIUS[kind]
+
+
+def _joint(name, kind, origin, cov_det, parent, child, sd_det, flags, radius, spread_cov=None, cross=None):
+    """A `Joint` whose stated uncertainty is fit + spread + model error (`MODEL_ERROR`)."""
+    me = MODEL_ERROR[kind]
+    sd_c = me["centre"] * radius
+    cov = np.asarray(cov_det, float) + sd_c ** 2 * np.eye(3)
+    if spread_cov is not None:
+        cov = cov + spread_cov
+    spread_deg = 0.0
+    if cross and "axis" in cross:
+        spread_deg = float(cross["axis"].get("spread_deg", 0.0))
+    sd = float(np.sqrt(float(sd_det) ** 2 + me["axis_deg"] ** 2 + spread_deg ** 2))
+    ref = parent if parent.origin is not None else child
+    return Joint(name, np.asarray(origin, float).copy(), 0.5 * (cov + cov.T), ref.rotation.copy(), sd, flags,
+                 parent=parent, child=child, origin_cov_detection=np.asarray(cov_det, float).copy(),
+                 axis_sd_detection_deg=float(sd_det), cross_check=cross,
+                 model_error={"centre_sd_m": round(sd_c, 9), "axis_sd_deg": me["axis_deg"],
+                              "articular_radius_m": round(float(radius), 6)})
+
+
+def _hip_centre(fem, pel, s):
+    """Femoral head centre, cross-checked with the acetabulum sphere when the pelvis is there."""
+    hc = fem.landmarks["femoral_head_centre"]
+    if pel is None or f"acetabulum_centre_{s}" not in pel.landmarks:
+        return hc.position, hc.cov, None, None, ()
+    from personalize.landmarks.crosscheck import Estimate, cross_check
+
+    ac = pel.landmarks[f"acetabulum_centre_{s}"]
+    rh = _scalar(fem, "femoral_head_radius") or _DEFAULT_RADIUS["hip"]
+    ra = _scalar(pel, f"acetabulum_radius_{s}") or rh
+    r = cross_check([Estimate("femoral_head", hc.position, hc.cov, HEAD_MODEL_SD * rh),
+                     Estimate("acetabulum", ac.position, ac.cov, ACETABULUM_MODEL_SD * ra)])
+    flags = () if r.agree else ("low_confidence",)
+    return r.value, r.cov_fit, r.cov_spread, {"centre": r.to_json("m")}, flags
+
+
 def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
     """Joint frames from a `personalize.landmarks.LandmarkSet`.
 
@@ -105,7 +284,7 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
     -------
     joints : dict[str, Joint]
         ``hip_r``, ``knee_r``, ... for every joint whose bones and landmarks
-        were found.
+        were found (the hip also without a pelvis: femur-side frame only).
     dropped : dict[str, str]
         Joint name -> reason, for every joint that could not be built.
     """
@@ -126,22 +305,44 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
         if s not in present:
             continue                               # no bone of that leg at all: nothing to report
         fem, tib, tal, cal, toe = (B.get(f"{b}_{s}") for b in ("femur", "tibia", "talus", "calcn", "toes"))
+        knee_c = fem.landmarks["intercondylar_midpoint"].position if fem is not None and \
+            "intercondylar_midpoint" in fem.landmarks else None
         # ---- hip
         j = f"hip_{s}"
-        if need(j, "pelvis", f"femur_{s}"):
-            if "femoral_head_centre" not in fem.landmarks or "isb" not in pel.frames:
-                dropped[j] = "femoral head or pelvic frame not detected"
+        if need(j, f"femur_{s}"):
+            if "femoral_head_centre" not in fem.landmarks:
+                dropped[j] = "femoral head not detected"
             else:
-                hc = fem.landmarks["femoral_head_centre"]
-                R = pel.frames["isb"]["rotation"]
-                asis = [pel.landmarks[k] for k in ("RASI", "LASI") if k in pel.landmarks]
-                w = np.linalg.norm(asis[0].position - asis[1].position) if len(asis) == 2 else 0.2
-                sd = np.degrees(np.sqrt(sum(np.trace(a.cov) / 3 for a in asis)) / w) if asis else float("nan")
-                joints[j] = Joint(j, hc.position.copy(), hc.cov.copy(), R.copy(), float(sd), _flags(pel, fem))
+                o, cov, spread, cross, fl = _hip_centre(fem, pel, s)
+                hc = o
+                if knee_c is not None and "knee_axis" in fem.axes:
+                    Rf = frame_yz(hc - knee_c, fem.axes["knee_axis"].direction)
+                elif "isb" in fem.frames:
+                    Rf = fem.frames["isb"]["rotation"]
+                else:
+                    Rf = fem.frames["anatomical"]["rotation"]
+                ka_sd = fem.axes["knee_axis"].sd_deg if "knee_axis" in fem.axes else 3.0
+                child = JointFrame(f"femur_{s}", hc.copy(), Rf.copy(),
+                                   axis_sd_deg=float(np.hypot(ka_sd, MODEL_ERROR["hip"]["axis_deg"])))
+                sd = float("nan")
+                if pel is None:
+                    parent = JointFrame("pelvis", missing="no pelvis among the bones")
+                    sd = fem.axes["knee_axis"].sd_deg if "knee_axis" in fem.axes else 1.0
+                elif "isb" not in pel.frames:
+                    parent = JointFrame("pelvis", missing="pelvic frame not detected")
+                    sd = fem.axes["knee_axis"].sd_deg if "knee_axis" in fem.axes else 1.0
+                else:
+                    R = pel.frames["isb"]["rotation"]
+                    parent = JointFrame("pelvis", hc.copy(), R.copy())
+                    asis = [pel.landmarks[k] for k in ("RASI", "LASI") if k in pel.landmarks]
+                    w = np.linalg.norm(asis[0].position - asis[1].position) if len(asis) == 2 else 0.2
+                    sd = np.degrees(np.sqrt(sum(np.trace(a.cov) / 3 for a in asis)) / w) if asis else 1.0
+                joints[j] = _joint(j, "hip", hc, cov, parent, child, sd, _flags(pel, fem) + tuple(
+                    f for f in fl if f not in _flags(pel, fem)), _radius("hip", fem), spread, cross)
         # ---- knee
         j = f"knee_{s}"
         if need(j, f"femur_{s}", f"tibia_{s}"):
-            if "intercondylar_midpoint" not in fem.landmarks or "knee_axis" not in fem.axes:
+            if knee_c is None or "knee_axis" not in fem.axes:
                 dropped[j] = "femoral condyles not detected"
             else:
                 kc = fem.landmarks["intercondylar_midpoint"]
@@ -150,8 +351,18 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                     yh = fem.landmarks["femoral_head_centre"].position - kc.position
                 else:
                     yh = fem.axes["shaft_axis"].direction
-                joints[j] = Joint(j, kc.position.copy(), kc.cov.copy(), frame_zy(ax.direction, yh), ax.sd_deg,
-                                  _flags(fem, tib))
+                if tal is not None and "talar_dome_centre" in tal.landmarks:
+                    yt = kc.position - tal.landmarks["talar_dome_centre"].position
+                elif "plafond_centre" in tib.landmarks:
+                    yt = kc.position - tib.landmarks["plafond_centre"].position
+                else:
+                    yt = tib.axes["shaft_axis"].direction
+                cross = fem.fits.get("knee_cross_check")
+                cross = {k: v for k, v in cross.items() if k in ("centre", "axis")} if cross else None
+                joints[j] = _joint(j, "knee", kc.position, kc.cov,
+                                   JointFrame(f"femur_{s}", kc.position.copy(), frame_zy(ax.direction, yh)),
+                                   JointFrame(f"tibia_{s}", kc.position.copy(), frame_zy(ax.direction, yt)),
+                                   ax.sd_deg, _flags(fem, tib), _radius("knee", fem), None, cross)
         # ---- ankle
         j = f"ankle_{s}"
         if need(j, f"tibia_{s}", f"talus_{s}"):
@@ -160,14 +371,17 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
             else:
                 ac = tal.landmarks["talar_dome_centre"]
                 ax = tal.axes["ankle_axis"]
-                if fem is not None and "intercondylar_midpoint" in fem.landmarks:
-                    yh = fem.landmarks["intercondylar_midpoint"].position - ac.position
+                if knee_c is not None:
+                    yh = knee_c - ac.position
                 elif "plateau_centre" in tib.landmarks:
                     yh = tib.landmarks["plateau_centre"].position - ac.position
                 else:
                     yh = tib.axes["shaft_axis"].direction
-                joints[j] = Joint(j, ac.position.copy(), ac.cov.copy(), frame_zy(ax.direction, yh), ax.sd_deg,
-                                  _flags(tib, tal))
+                yt = tal.frames["anatomical"]["rotation"][:, 1] if "anatomical" in tal.frames else yh
+                joints[j] = _joint(j, "ankle", ac.position, ac.cov,
+                                   JointFrame(f"tibia_{s}", ac.position.copy(), frame_zy(ax.direction, yh)),
+                                   JointFrame(f"talus_{s}", ac.position.copy(), frame_zy(ax.direction, yt)),
+                                   ax.sd_deg, _flags(tib, tal), _radius("ankle", None, tal))
         # ---- subtalar
         j = f"subtalar_{s}"
         if need(j, f"talus_{s}", f"calcn_{s}"):
@@ -184,7 +398,10 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                     ac = tal.landmarks["talar_dome_centre"]
                     o, cov = closest_on_line(ax.point, ax.direction, ac.position), ac.cov
                 up = cal.frames["foot"]["rotation"][:, 1] if "foot" in cal.frames else tal.frames["anatomical"]["rotation"][:, 1]
-                joints[j] = Joint(j, o, cov.copy(), frame_zy(ax.direction, up), ax.sd_deg, _flags(tal, cal))
+                R = frame_zy(ax.direction, up)
+                joints[j] = _joint(j, "subtalar", o, cov, JointFrame(f"talus_{s}", o.copy(), R.copy()),
+                                   JointFrame(f"calcn_{s}", o.copy(), R.copy()), ax.sd_deg, _flags(tal, cal),
+                                   _radius("subtalar", None, tal))
         # ---- mtp
         j = f"mtp_{s}"
         if need(j, f"calcn_{s}", f"toes_{s}"):
@@ -195,7 +412,9 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 m1 = cal.landmarks.get("met1_head_centre")
                 m5 = cal.landmarks.get("met5_head_centre")
                 cov = 0.25 * (m1.cov + m5.cov) if m1 is not None and m5 is not None else (0.002 ** 2) * np.eye(3)
-                joints[j] = Joint(j, np.asarray(ax.point, float).copy(), cov,
-                                  frame_zy(ax.direction, cal.frames["foot"]["rotation"][:, 1]), ax.sd_deg,
-                                  _flags(cal, toe))
+                o = np.asarray(ax.point, float)
+                R = frame_zy(ax.direction, cal.frames["foot"]["rotation"][:, 1])
+                joints[j] = _joint(j, "mtp", o, cov, JointFrame(f"calcn_{s}", o.copy(), R.copy()),
+                                   JointFrame(f"toes_{s}", o.copy(), R.copy()), ax.sd_deg, _flags(cal, toe),
+                                   _radius("mtp"))
     return joints, dropped

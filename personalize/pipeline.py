@@ -1174,7 +1174,7 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
     from kinematics.ik import solve_ik
     from kinematics.storage import write_mot, write_sto
 
-    from .frames import joints_from_landmarks
+    from .frames import joints_document, joints_from_landmarks, without_model_error
     from .landmarks import detect_landmarks
     from .model_builder import build_personal_model, save_model_json, save_model_osim, write_meshes
     from .parameter_fusion import fuse_knee_standing_translation, fuse_segment_lengths
@@ -1203,7 +1203,9 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
     ls = detect_landmarks(surfaces, progress=lambda b: say(f"landmarks {b}"))
     joints, dropped = joints_from_landmarks(ls)
     lm_json = ls.to_json()
-    j_json = {k: v.to_json() for k, v in joints.items()}
+    j_doc = joints_document(joints, dropped, frame="input (scanner)")
+    # the MRI covariance scales below were calibrated on phantoms: without the real-bone model-error term
+    j_json = {k: without_model_error(v) for k, v in j_doc["joints"].items()}
     say("measuring the soft tissue over the pelvic landmarks")
     skin = pelvis_skin(inputs, surfaces, lm_json, volume)
     del volume
@@ -1289,8 +1291,7 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
                                for k, r in est.registrations.items()}
     with staged_dir(out) as stage:
         write_text(inside(stage, "landmarks.json"), json.dumps(lm_json, indent=1) + "\n")
-        write_text(inside(stage, "joints.json"), json.dumps({"units": "m", "frame": "input (scanner)", "joints": j_json,
-                                                              "dropped": dropped}, indent=1) + "\n")
+        write_text(inside(stage, "joints.json"), json.dumps(j_doc, indent=1) + "\n")
         say("writing meshes and model")
         mesh_files = write_meshes(pm, _bone_meshes_lab(surfaces, est, sides), inside(stage, "meshes"))
         save_model_json(pm, inside(stage, "model.json"), mesh_files)

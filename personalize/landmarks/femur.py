@@ -406,6 +406,7 @@ def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise):
     if cyl is None:
         res.notes.append("knee axis: no cylinder on the posterior condyles; line through the condyle centres")
         ax = Axis(point=mid, direction=ax.direction, sd_deg=ax.sd_deg)
+        cyl_fit = None
     else:
         fit, sel, u = cyl
         u = orient(u, ax.direction)
@@ -422,17 +423,121 @@ def _condyles(surface, res, cond_region, dist_region, med, ant, sd, P, noise):
         res.fits["posterior_condyles"] = {"type": "cylinder", "point": mid.tolist(), "axis": u.tolist(),
                                           "radius": float(fit.radius), "rms": float(fit.rms),
                                           "n_points": int(sel.sum()), "converged": bool(fit.converged)}
-    res.axes["knee_axis"] = ax
-    res.landmarks["intercondylar_midpoint"] = Landmark(mid, mid_cov)
+        cyl_fit = fit
     sep = float(np.linalg.norm(m_lm.position - l_lm.position))
     if not 0.02 < sep < 0.09:
         res.flag(FLAG_LOW_CONFIDENCE, f"condyle centres {sep * 1e3:.0f} mm apart")
-    # Epicondyles: extreme points along the condyle axis in the distal block.
-    u = ax.direction if res.side == "r" else -ax.direction    # medial -> lateral
-    k_lat = extreme_vertex(surface, u, dist_region, smooth=0.001)
-    k_med = extreme_vertex(surface, -u, dist_region, smooth=0.001)
+
+    def epicondyles(direction):
+        u_ = direction if res.side == "r" else -direction    # medial -> lateral
+        return (extreme_vertex(surface, u_, dist_region, smooth=0.001),
+                extreme_vertex(surface, -u_, dist_region, smooth=0.001))
+
+    k_lat, k_med = epicondyles(ax.direction)
+    r_cond = 0.5 * (float(sph["medial"].radius) + float(sph["lateral"].radius))
+    ax, mid, mid_cov = _knee_cross_check(surface, res, cond_region, ax, mid, mid_cov, cyl_fit, sd, ant,
+                                         m_lm.position, l_lm.position, V[k_med], V[k_lat], r_cond, noise)
+    res.axes["knee_axis"] = ax
+    res.landmarks["intercondylar_midpoint"] = Landmark(mid, mid_cov)
+    # Epicondyles: extreme points along the knee axis in the distal block.
+    k_lat, k_med = epicondyles(ax.direction)
     res.landmarks[f"{P}KNE"] = Landmark(V[k_lat].copy(), _iso(noise, 0.002))
     res.landmarks[f"{P}MFC"] = Landmark(V[k_med].copy(), _iso(noise, 0.002))
+
+
+#: model standard deviation of each knee estimate, as a fraction of the mean condyle
+#: sphere radius (centres; ~1 mm and ~7.5 mm on an adult knee), and in degrees (axes):
+#: how far that construction can lie from the flexion axis on a real femur.  The
+#: cylinders and spheres describe the articular arc; the epicondyles are the bone's
+#: widest points, a coarse axis 3-8 mm from the articular one on real femurs
+KNEE_MODEL_SD = {"posterior_condyle_cylinder": (0.04, 1.0), "posterior_arc_cylinder": (0.04, 1.0),
+                 "posterior_arc_spheres": (0.04, 3.0), "epicondyles": (0.3, 5.0)}
+
+
+def _knee_cross_check(surface, res, cond_region, ax, mid, mid_cov, cyl_fit, sd, ant, medial, lateral,
+                      epi_med, epi_lat, r_cond, noise):
+    """Knee centre and axis from independent estimates, tested against each other (`crosscheck`).
+
+    Estimates (first = primary): the posterior-condyle cylinder (normals in
+    the posterior arc), the posterior-arc cylinder (points lying in it too),
+    the line through spheres fitted to each condyle's posterior arc, and the
+    epicondylar line.  The centre is compared across the primary axis; its
+    model sd is `KNEE_MODEL_SD` x the condyle sphere radius.  Returns the
+    combined axis, centre and covariance (fit + spread of left-out estimates).
+    """
+    from personalize.fitting import fit_sphere
+
+    from .crosscheck import Estimate, cross_check, cross_check_directions
+
+    u0 = ax.direction
+    V, Nrm = surface.vertices, surface.normals
+    est_c, est_u = [], []
+
+    def add(name, point, cov, direction, sd_deg):
+        kc, ka = KNEE_MODEL_SD[name]
+        est_c.append(Estimate(name, np.asarray(point, float), np.asarray(cov, float), kc * r_cond))
+        d = orient(unit(np.asarray(direction, float)), u0)
+        est_u.append(Estimate(name, d, np.radians(sd_deg) ** 2 * np.eye(3), np.radians(ka)))
+
+    def on_line(p, u):                            # the line's point across from the primary centre
+        p = np.asarray(p, float)
+        return p + float((mid - p) @ u) * u
+
+    if cyl_fit is not None:
+        add("posterior_condyle_cylinder", mid, mid_cov, u0, ax.sd_deg)
+    arc = posterior_condyle_cylinder(surface, cond_region, mid, u0, sd, ant, medial, lateral, by_position=True)
+    u_arc = u0
+    if arc is not None:
+        fit2, sel2, u2 = arc
+        u_arc = orient(u2, u0)
+        Pp = np.eye(3) - np.outer(u_arc, u_arc)
+        add("posterior_arc_cylinder", on_line(fit2.point, u_arc), Pp @ np.asarray(fit2.covariance)[:3, :3] @ Pp,
+            u_arc, axis_sd_deg(fit2))
+        res.fits["posterior_arc_cylinder"] = {"type": "cylinder", "point": np.asarray(fit2.point).tolist(),
+                                              "axis": u_arc.tolist(), "radius": float(fit2.radius),
+                                              "rms": float(fit2.rms), "n_points": int(sel2.sum())}
+    # spheres on each condyle's posterior arc (lying and facing 0-90 deg from distal about the arc axis)
+    p_arc = est_c[-1].value if est_c else mid
+    dist_dir = unit(perpendicular(-sd, u_arc))
+    post_dir = orient(np.cross(u_arc, dist_dir), -ant)
+    d = V - p_arc
+    thp, thn = np.arctan2(d @ post_dir, d @ dist_dir), np.arctan2(Nrm @ post_dir, Nrm @ dist_dir)
+    lo, hi = np.radians(POSTERIOR_ARC_DEG)
+    t = d @ u_arc
+    sep = float(np.linalg.norm(np.asarray(medial) - lateral))
+    base = cond_region & (thp >= lo) & (thp <= hi) & (thn >= lo) & (thn <= hi) & (np.abs(Nrm @ u_arc) < CYL_AXIAL_MAX)
+    cs = []
+    for c in (medial, lateral):
+        k = base & (np.abs(t - float((np.asarray(c) - p_arc) @ u_arc)) < CONDYLE_BAND * sep)
+        if k.sum() < 30:
+            break
+        try:
+            cs.append(fit_sphere(V[k], normals=Nrm[k]))
+        except FitError:
+            break
+    if len(cs) == 2:
+        a_, b_ = np.asarray(cs[0].centre, float), np.asarray(cs[1].centre, float)
+        line = orient(unit(b_ - a_), u0)
+        cov = 0.25 * (sphere_centre_cov(cs[0]) + sphere_centre_cov(cs[1]))
+        sdd = float(np.degrees(np.sqrt(np.trace(sphere_centre_cov(cs[0]) + sphere_centre_cov(cs[1])) / 3)
+                               / max(np.linalg.norm(b_ - a_), 1e-3)))
+        add("posterior_arc_spheres", on_line(0.5 * (a_ + b_), line), cov, line, sdd)
+    add("epicondyles", on_line(0.5 * (epi_med + epi_lat), unit(epi_lat - epi_med)), _iso(noise, 0.002),
+        epi_lat - epi_med, 2.0)
+    rc = cross_check(est_c, plane_normal=u0)
+    ru = cross_check_directions(est_u)
+    u = ru.value
+    centre = rc.value
+    cov = rc.cov_fit + rc.cov_spread + 1e-12 * np.eye(3)
+    sd_deg = float(np.degrees(np.sqrt(np.trace(ru.cov_fit + ru.cov_spread) / 2)))
+    res.fits["knee_cross_check"] = {"centre": rc.to_json("m"), "axis": ru.to_json("rad"),
+                                    "model_sd": {k: {"centre_mm": round(v[0] * r_cond * 1e3, 3), "axis_deg": v[1]}
+                                                 for k, v in KNEE_MODEL_SD.items()}}
+    for r_, what, k in ((rc, "centre", 1e3), (ru, "axis", np.degrees(1.0))):
+        if not r_.agree:
+            res.flag(FLAG_LOW_CONFIDENCE, f"knee {what}: estimates disagree ({', '.join(r_.left_out)} left out; "
+                                          f"spread {r_.spread * k:.1f} {'mm' if what == 'centre' else 'deg'})")
+    return Axis(point=centre, direction=u, sd_deg=sd_deg), centre, cov
 
 
 #: posterior condyle arc used for the flexion-axis cylinder: surface normals from
@@ -450,7 +555,7 @@ CONDYLE_BAND = 0.15
 
 
 def posterior_condyle_cylinder(surface: Surface, region: np.ndarray, centre, axis, up, ant, medial, lateral,
-                               iterations: int = 4):
+                               iterations: int = 4, by_position: bool = False):
     r"""Cylinder through the posterior condyles (the knee flexion axis).
 
     Model: one circular cylinder (axis line, radius) through the articular
@@ -468,6 +573,13 @@ def posterior_condyle_cylinder(surface: Surface, region: np.ndarray, centre, axi
     axis).  Every
     criterion is relative to the bone's own axes: the selection does not
     depend on the bone's pose in the scanner.
+
+    With ``by_position`` the points must also *lie* in that arc about the
+    current axis (angle of ``x - p`` about it), not only face it: on an oval
+    condyle whose distal part is flatter than its posterior part the normal
+    rule alone lets the distal surface dominate; both rules together keep the
+    arc the posterior condyle occupies.  Used as a second, cross-checking
+    estimate (`_knee_cross_check`).
 
     Returns
     -------
@@ -490,6 +602,9 @@ def posterior_condyle_cylinder(surface: Surface, region: np.ndarray, centre, axi
         tm, tl = (np.asarray(medial) - p) @ u, (np.asarray(lateral) - p) @ u
         win = (np.abs(t - tm) < CONDYLE_BAND * sep) | (np.abs(t - tl) < CONDYLE_BAND * sep)
         new = region & win & (th >= lo) & (th <= hi) & (np.abs(Nrm @ u) < CYL_AXIAL_MAX)
+        if by_position:
+            thp = np.arctan2((V - p) @ post_dir, (V - p) @ dist_dir)
+            new &= (thp >= lo) & (thp <= hi)
         if new.sum() < 60:
             if fit is None:
                 return None
