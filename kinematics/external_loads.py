@@ -192,6 +192,30 @@ def write_external_loads(directory: str | os.PathLike, stem: str, loads: Sequenc
     return mot, xml
 
 
+def _extend(plate, a: int, b: int, others) -> tuple[int, int]:
+    """Grow a loaded interval [a, b) over the adjacent frames still above the plate's noise.
+
+    The noise level is the unloaded frames' median normal force plus three
+    robust standard deviations (at least 2 N); the interval never grows into
+    another interval of the same plate.
+    """
+    fn = plate.force @ plate.normal
+    free = ~plate.loaded
+    if free.sum() >= 10:
+        base = float(np.median(fn[free]))
+        sd = 1.4826 * float(np.median(np.abs(fn[free] - base)))
+    else:
+        base, sd = 0.0, 0.0
+    level = base + max(3.0 * sd, 2.0)
+    lo = max([s for _, s in others if s <= a], default=0)
+    hi = min([s for s, _ in others if s >= b], default=len(fn))
+    while a > lo and fn[a - 1] > level:
+        a -= 1
+    while b < hi and fn[b] > level:
+        b += 1
+    return a, b
+
+
 def _xml_escape(s: str) -> str:
     return str(s).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
 
@@ -201,7 +225,10 @@ def loads_from_plates(plates, contacts, bodies=None, rotation=LAB_TO_OPENSIM) ->
 
     Each foot's load is the sum, frame by frame, of the plate wrenches of the
     intervals assigned to it (a foot on two plates at once gets the resultant
-    force at the combined CoP).  Intervals that are not usable (two feet,
+    force at the combined CoP).  Each interval is grown over the adjacent
+    frames whose normal force is still above the plate's noise (strike and
+    push-off under the CoP threshold carry load too); there the point is the
+    plate centre and the torque carries the moment, so the wrench is exact.  Intervals that are not usable (two feet,
     CoP outside the plate, no foot) are left out and reported.
 
     Parameters
@@ -218,29 +245,34 @@ def loads_from_plates(plates, contacts, bodies=None, rotation=LAB_TO_OPENSIM) ->
     n = plates.n_frames
     notes = []
     acc = {}
+    spans = {}
     for c in contacts:
         if not c.usable:
             notes.append(f"not applied: {c.describe()}")
             continue
         p = plates[c.plate]
+        a, b = _extend(p, c.start, c.stop, [(d.start, d.stop) for d in contacts if d.plate == c.plate and d is not c])
+        spans.setdefault(c.foot, []).append((a, b, c.plate))
         F = np.zeros((n, 3))
         M = np.zeros((n, 3))
-        sl = slice(c.start, c.stop)
+        sl = slice(a, b)
         F[sl] = p.force[sl]
         M[sl] = p.moment[sl] + np.cross(p.centre, p.force[sl])  # moment about the lab origin
         f0, m0 = acc.get(c.foot, (np.zeros((n, 3)), np.zeros((n, 3))))
         acc[c.foot] = (f0 + F, m0 + M)
     loads = []
+    # the CoP of the written file is only defined under load; the wrench (F, M) is applied whole
     for side in sorted(acc, key=lambda s: ("R", "L").index(s) if s in ("R", "L") else 2):
         F, M = acc[side]
         nrm = np.array([0.0, 0.0, 1.0])
         fn = F @ nrm
-        on = fn > plates.threshold
+        on = np.zeros(n, bool)
         # point on the horizontal plane of the loaded plates' surface: z from the plates, (x, y) from the moment
         z = np.zeros(n)
-        for c in contacts:
-            if c.usable and c.foot == side:
-                z[c.start:c.stop] = plates[c.plate].centre[2]
+        for a, b, k in spans[side]:
+            z[a:b] = plates[k].centre[2]
+            on[a:b] = True
+        on &= np.abs(fn) > 1e-9
         P = np.zeros((n, 3))
         with np.errstate(invalid="ignore", divide="ignore"):
             # M_O = P x F + T n with P_z = z: solve the horizontal components
@@ -252,6 +284,14 @@ def loads_from_plates(plates, contacts, bodies=None, rotation=LAB_TO_OPENSIM) ->
         P[~on] = 0.0
         T[~on] = 0.0
         F[~on] = 0.0
+        weak = on & (fn < plates.threshold)  # below the threshold the CoP is unreliable: put it at the plate
+        if weak.any():
+            for a, b, k in spans[side]:
+                sel = weak.copy()
+                sel[:a] = False
+                sel[b:] = False
+                P[sel] = plates[k].centre
+                T[sel] = (M[sel] - np.cross(P[sel], F[sel]))
         loads.append(ExternalLoad(f"{side}_ground_reaction", bodies.get(side, side), plates.time.copy(),
                                   F @ R.T, P @ R.T, T @ R.T))
     return loads, notes

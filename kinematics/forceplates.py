@@ -50,8 +50,9 @@ Conventions and checks (the C3D spec leaves several of these to the vendor):
   point frames at the stated ANALOG:RATE (an ANALOG:RATE that is not the
   file's samples-per-frame times POINT:RATE), the file is refused.  The CoP
   is computed after averaging the wrench, never by averaging CoPs.
-* Under the load ``threshold`` (N, along the plate normal) the CoP and free
-  moment are NaN and ``loaded`` is False.  Loaded frames whose CoP is outside
+* Under the load ``threshold`` (N, along the plate normal; tested on the
+  point-period average also at the analog rate) the CoP and free moment are
+  NaN and ``loaded`` is False.  Loaded frames whose CoP is outside
   the plate outline (by more than 1 cm) are marked in ``cop_outside``.
 
 `assign_feet` gives each loaded interval of each plate to the foot standing on
@@ -82,7 +83,7 @@ _MOMENT = {"nmm": 1e-3, "n.mm": 1e-3, "n mm": 1e-3, "nm": 1.0, "n.m": 1.0, "n m"
 # Foot markers tried in order, per side: Plug-in-Gait, then common OpenSim/other names.
 FOOT_MARKERS = {
     "heel": ("{s}HEE", "{s}HEEL", "{s}.Heel", "{s}CAL", "{s}HEL"),
-    "toe": ("{s}TOE", "{s}.Toe", "{s}TOE2", "{s}MT2", "{s}D2M", "{s}FM2"),
+    "toe": ("{s}TOE", "{s}.Toe", "{s}.Toe.Tip", "{s}TOE2", "{s}MT2", "{s}D2M", "{s}FM2"),
     "ankle": ("{s}ANK", "{s}.Ankle", "{s}LMAL", "{s}LM", "{s}ANKL"),
 }
 
@@ -292,6 +293,15 @@ def box_average(samples: np.ndarray, analog_rate: float, point_rate: float, n_fr
     return ((c_hi - c_lo) / width).reshape((n_frames,) + x.shape[1:])
 
 
+def _moving_average(x: np.ndarray, n: int) -> np.ndarray:
+    """Centred moving average over `n` samples (edges: the available samples)."""
+    if n <= 1:
+        return x
+    from scipy.ndimage import uniform_filter1d
+
+    return uniform_filter1d(x, size=n, mode="nearest")
+
+
 def _unit_factor(unit: str, table: dict, path, label: str) -> float:
     u = unit.strip().lower().replace("·", " ")
     if u in table:
@@ -462,7 +472,10 @@ def read_force_plates(path: str | os.PathLike, *, threshold: float = DEFAULT_THR
             force, moment = -force, -moment
             fn = -fn
             notes.append("channels give the force on the plate; negated to the reaction on the subject")
-        loaded = fn > threshold
+        # Load detection on the point-period average (at the analog rate, raw noise of 10-20 N would
+        # otherwise cut a stance into hundreds of pieces): the same frames as the point-rate output.
+        fn_detect = fn if at == "points" else _moving_average(fn, round(per_frame))
+        loaded = fn_detect > threshold
         # CoP on the surface plane: M_c = (p - c) x F + T n  with (p - c) . n = 0.
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.cross(normal, moment) / fn[:, None]
@@ -470,11 +483,13 @@ def read_force_plates(path: str | os.PathLike, *, threshold: float = DEFAULT_THR
         cop = centre + r
         free = moment - np.cross(r, force)
         free = np.outer(free @ normal, normal)
-        cop[~loaded] = np.nan
-        free[~loaded] = np.nan
+        no_cop = ~(loaded & (fn > threshold))  # a noise dip under the threshold inside a contact: no CoP
+        cop[no_cop] = np.nan
+        free[no_cop] = np.nan
         plate = ForcePlate(k, ptype, corners, centre, rot, normal, force, moment, cop, free, loaded,
                            np.zeros(len(loaded), bool), ch_labels, tuple(notes))
-        outside = loaded & ~plate.contains(np.where(loaded[:, None], cop, centre), margin=_COP_TOLERANCE_M)
+        has_cop = ~no_cop
+        outside = has_cop & ~plate.contains(np.where(has_cop[:, None], cop, centre), margin=_COP_TOLERANCE_M)
         if outside.any():
             object.__setattr__(plate, "cop_outside", outside)
             object.__setattr__(plate, "notes", plate.notes + (
@@ -613,8 +628,9 @@ def assign_feet(plates: ForcePlates, markers, *, max_cop_distance: float = 0.08,
         feet[s] = (h, t)
     out: list[PlateContact] = []
     n = plates.n_frames
+    min_run = max(1, round(0.02 * plates.rate))  # a load shorter than 20 ms is not a foot contact
     for plate in plates:
-        for a, b in plate.intervals():
+        for a, b in plate.intervals(min_frames=min_run):
             flags: list[str] = []
             if a == 0 or b == n:
                 flags.append("partial")

@@ -37,7 +37,7 @@ from .filtering import DEFAULT_CUTOFF_HZ, _opensim_lowpass, lowpass
 from .model import Model
 from .transmission import AppliedLoad, TransmissionChain
 
-__all__ = ["InverseDynamicsResult", "coordinate_kinds", "trial_inverse_dynamics", "write_inverse_dynamics",
+__all__ = ["InverseDynamicsResult", "TrialLoads", "coordinate_kinds", "lab_to_ground", "loads_from_c3d", "trial_inverse_dynamics", "write_inverse_dynamics",
            "write_joint_powers"]
 
 
@@ -142,6 +142,7 @@ def _interp_cubic(t_data, values, t, margin: int = 60):
 def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] = (), *,
                            cutoff: float | None = DEFAULT_CUTOFF_HZ, method: str = "opensim",
                            load_cutoff: float | None = None, start: float | None = None, end: float | None = None,
+                           exclude: Sequence[tuple] = (), max_point_distance: float = 0.5,
                            chain: TransmissionChain | None = None) -> InverseDynamicsResult:
     """Joint moments and powers of a trial (module docstring for the model).
 
@@ -160,6 +161,13 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
         zero-lag filter) before use; None keeps them as given (OpenSim's tool).
     start, end : float, s
         Output window (the whole filtered trial is used for the splines).
+    exclude : sequence of (t0, t1, reason)
+        Time intervals whose ground reaction is unknown (e.g. a plate with two
+        feet on it): their generalised forces are NaN, with a note.
+    max_point_distance : float, m
+        A load whose point of application is farther than this from its body's
+        origin in most loaded frames (median) is refused: kinematics and loads
+        are then not in the same frame or time base.
 
     Returns
     -------
@@ -212,16 +220,18 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
     ch = chain or TransmissionChain(model)
     applied = []
     bodies = []
+    unknown = np.zeros(t.shape[0], bool)
     if loads:
         from .fk import forward_kinematics
 
         pos = forward_kinematics(model, qf).positions
         for ld in loads:
+            P = ld.point
             try:
                 b = model.body_index(ld.body)
             except Exception:  # noqa: BLE001 - model lookups raise their own error types
                 raise InputError(ld.name, f"load applied to body {ld.body!r}, which the model does not have") from None
-            F, P, T = ld.force, ld.point, ld.torque
+            F, T = ld.force, ld.torque
             M = np.cross(P, F) + T  # moment about the ground origin: continuous through contact changes
             if load_cutoff is not None and load_cutoff > 0:
                 lr = 1.0 / np.mean(np.diff(ld.time))
@@ -230,11 +240,23 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
             FM = _interp_cubic(ld.time, np.hstack([F, M]), t)
             Fk, Mk = FM[:, :3], FM[:, 3:]
             outside = (t < ld.time[0] - 1e-9) | (t > ld.time[-1] + 1e-9)
+            if outside.all():
+                raise InputError(ld.name, f"no ground-reaction data in the kinematics' time range ({t[0]:.3f}-"
+                                          f"{t[-1]:.3f} s; the loads cover {ld.time[0]:.3f}-{ld.time[-1]:.3f} s)")
             if outside.any():
                 Fk[outside] = 0.0
                 Mk[outside] = 0.0
-                notes.append(f"{ld.name}: no load data for {int(outside.sum())} frames (taken as no load)")
+                unknown |= outside
+                notes.append(f"{ld.name}: no load data for {int(outside.sum())} frames: moments not computed there")
             ob = pos[:, b]
+            Pk = _interp_cubic(ld.time, P, t)
+            on = np.linalg.norm(Fk, axis=1) > 20.0
+            if on.sum() >= 3:
+                d = float(np.median(np.linalg.norm(Pk[on] - ob[on], axis=1)))
+                if d > max_point_distance:
+                    raise InputError(ld.name, f"its point of application is {d:.2f} m from body {ld.body!r} (median "
+                                              "over the loaded frames): loads and kinematics are not in the same "
+                                              "frame or time base")
             applied.append(AppliedLoad(ld.body, Fk, np.zeros((t.shape[0], 3)), Mk - np.cross(ob, Fk)))
             bodies.append(ld.body)
         if load_cutoff:
@@ -242,6 +264,12 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
     else:
         notes.append("no external loads: kinematics-driven moments only (no ground reactions)")
     tau = inverse_dynamics(model, qf, qd, qdd, applied, chain=ch)
+    tau[unknown] = np.nan
+    for t0, t1, why in exclude:
+        bad = (t >= t0 - 1e-9) & (t <= t1 + 1e-9)
+        if bad.any():
+            tau[bad] = np.nan
+            notes.append(f"{int(bad.sum())} frames {t0:.3f}-{t1:.3f} s not computed: {why}")
     return InverseDynamicsResult(tuple(model.coordinate_names), coordinate_kinds(model), t, qf, qd, qdd, tau,
                                  tau * qd, model.total_mass, tuple(bodies), tuple(notes))
 
@@ -265,3 +293,112 @@ def write_joint_powers(path, result: InverseDynamicsResult, per_kg: bool = False
     return write_sto(path, [f"{c}_power" for c in result.coordinates], result.time, vals, name="Joint powers",
                      header_extra=[f"Joint powers tau * qd in {'W/kg' if per_kg else 'W'};",
                                    f"model mass {result.mass:.3f} kg"])
+
+
+def lab_to_ground(model: Model) -> np.ndarray:
+    """Rotation from a C3D lab (X forward, Z up) to the model's ground, from the model's gravity.
+
+    Gravity along -Z: the identity (models built from the lab, as
+    `personalize.model_builder` makes them); along -Y (OpenSim's gait
+    models): x' = x, y' = z, z' = -y (the usual C3D to OpenSim export).
+    """
+    from .external_loads import LAB_TO_OPENSIM
+
+    g = np.asarray(model.gravity, float)
+    if not np.linalg.norm(g) > 0:
+        raise InputError(model.name or "model", "has no gravity: cannot tell its vertical")
+    u = -g / np.linalg.norm(g)
+    if np.allclose(u, [0.0, 0.0, 1.0], atol=1e-6):
+        return np.eye(3)
+    if np.allclose(u, [0.0, 1.0, 0.0], atol=1e-6):
+        return LAB_TO_OPENSIM.copy()
+    raise InputError(model.name or "model", f"gravity {g} is neither along -Z nor -Y: the lab-to-ground rotation is unknown")
+
+
+@dataclass(frozen=True)
+class TrialLoads:
+    """Ground reactions of a C3D trial in a model's ground, with what could not be applied.
+
+    Attributes
+    ----------
+    loads : tuple of ExternalLoad (one per foot that stood on a plate)
+    contacts : tuple of PlateContact (`kinematics.forceplates.assign_feet`)
+    exclude : tuple of (t0, t1, reason)
+        Loaded intervals that cannot be applied to one foot (two feet, CoP
+        outside the plate, no foot found): pass to `trial_inverse_dynamics`.
+    notes : tuple of str
+    """
+
+    loads: tuple
+    contacts: tuple
+    exclude: tuple
+    notes: tuple
+
+
+def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict | None = None) -> TrialLoads:
+    """Force plates of a C3D trial as external loads on the model's feet.
+
+    The plates are read at the point rate (box-averaged, as Nexus reports them; raw analog noise
+    would put low-load centres of pressure outside the plates), each loaded
+    interval is assigned to a foot from the file's foot markers
+    (`assign_feet`), the wrenches are summed per foot (`loads_from_plates`)
+    and rotated into the model's ground (`lab_to_ground`).  Feet go to
+    ``calcn_r`` / ``calcn_l`` (``bodies`` to change).  A file without plates
+    gives no loads and a note.
+    """
+    from .c3d import read_c3d
+    from .external_loads import loads_from_plates
+    from .forceplates import assign_feet, read_force_plates
+
+    plates = read_force_plates(path, threshold=threshold, at="points")
+    notes = list(plates.notes)
+    for p in plates:
+        notes += [f"{p.name}: {n}" for n in p.notes]
+    if len(plates) == 0:
+        return TrialLoads((), (), (), tuple(notes))
+    bodies = dict(bodies or {"R": "calcn_r", "L": "calcn_l"})
+    missing = [b for b in bodies.values() if b not in model.body_names]
+    if missing:
+        raise InputError(model.name or "model", f"has no body {', '.join(missing)} to apply the ground reactions to")
+    markers = read_c3d(path)
+    contacts = assign_feet(plates, markers)
+    loads, _ = loads_from_plates(plates, contacts, bodies, rotation=lab_to_ground(model))
+    notes += [c.describe() for c in contacts]
+    exclude = [(c.start_time, c.end_time, f"plate {c.plate + 1}: {', '.join(c.flags) or 'no foot'}")
+               for c in contacts if not c.usable]
+    for side in bodies:
+        for t0, t1 in _stance_off_plates(markers, contacts, side):
+            exclude.append((t0, t1, f"{side} foot on the ground off the force plates (ground reaction unknown)"))
+    return TrialLoads(tuple(loads), tuple(contacts), tuple(sorted(exclude)), tuple(notes))
+
+
+def _stance_off_plates(markers, contacts, side: str, max_speed: float = 0.5, min_s: float = 0.05,
+                       margin_s: float = 0.05) -> list[tuple[float, float]]:
+    """Intervals where a foot stands (heel or toe slower than `max_speed`) without a usable plate contact.
+
+    Foot-velocity stance detection (O'Connor et al. 2007): a standing foot
+    has a marker at rest.  Intervals shorter than `min_s`, and the `margin_s`
+    next to the foot's plate contacts (strike and push-off), are ignored.
+    """
+    from .forceplates import _foot_markers, _runs
+
+    names = _foot_markers(markers, side)
+    if "heel" not in names:
+        return []
+    t = markers.time
+    speeds = []
+    for role in ("heel", "toe"):
+        if role in names:
+            x = markers.marker(names[role])
+            speeds.append(np.linalg.norm(np.gradient(x, t, axis=0), axis=1))
+    with np.errstate(invalid="ignore"):
+        stance = np.nanmin(np.vstack(speeds), axis=0) < max_speed
+    covered = np.zeros(t.shape[0], bool)
+    for c in contacts:
+        if c.usable and c.foot == side:
+            covered |= (t >= c.start_time - margin_s) & (t <= c.end_time + margin_s)
+    out = []
+    for a, b in _runs(stance & ~covered):
+        if t[b - 1] - t[a] >= min_s:
+            out.append((float(t[a]), float(t[b - 1])))
+    return out

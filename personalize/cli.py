@@ -25,7 +25,7 @@ from .errors import FitError, InputError, Interrupted
 
 COMMANDS = (
     "phantom", "surfaces", "bones", "ik", "markers", "correlate",
-    "run", "validate", "batch", "demo",
+    "run", "validate", "batch", "demo", "dynamics",
 )
 
 app = typer.Typer(

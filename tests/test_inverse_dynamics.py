@@ -150,3 +150,170 @@ def test_external_loads_roundtrip_and_opensim_reads_them(trial, tmp_path, opensi
     assert "N" in mot.read_text().split("endheader")[0]
     el = opensim.ExternalLoads(str(xml), True)
     assert el.getSize() == 2 and el.get(0).get_applied_to_body() == "calcn_r"
+
+
+# --------------------------------------------------------------------------- the command
+
+# C3D files written by ezc3d in a child process (opensim's SWIG module, loaded here, breaks ezc3d's
+# parameter writing in this process).  split.c3d: subject01's walk as a C3D lab (Z up) with its two
+# ground reactions on two type-2 plates side by side (an instrumented split-belt treadmill: CoP at
+# x 0.25-0.81 m for both feet), the channels in N and N mm at 600 Hz, the markers at 60 Hz;
+# noplates.c3d: the mocap_pig movement trial without its plates.
+_C3DS = r'''
+import sys
+import numpy as np
+import ezc3d
+sys.path.insert(0, sys.argv[1])
+from kinematics.storage import read_mot, read_trc
+
+grf, trc, pig, out = sys.argv[2:6]
+R = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])  # lab (Z up) -> OpenSim ground (Y up)
+tab, mk = read_mot(grf), read_trc(trc)
+nf, spf, h = mk.n_frames, 10, -0.0075
+chans, labels, corners = [], [], []
+for k, (pre, (y0, y1)) in enumerate({"": (-0.3, 0.0), "1_": (0.0, 0.3)}.items()):
+    idx = np.minimum(np.arange(nf * spf), len(tab.time) - 1)
+    F, P, T = (tab.select([f"{pre}ground_{w}{c}" for c in "xyz"])[idx] @ R for w in ("force_v", "force_p", "torque_"))
+    c = np.array([[1.4, y0, h], [-0.2, y0, h], [-0.2, y1, h], [1.4, y1, h]])
+    Rp = np.column_stack([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # plate X = c1 - c2, Z down
+    f, m = F @ Rp, (np.cross(P - c.mean(axis=0), F) + T) @ Rp
+    chans += [f[:, 0], f[:, 1], f[:, 2], 1e3 * m[:, 0], 1e3 * m[:, 1], 1e3 * m[:, 2]]
+    labels += [f"F{a}{k + 1}" for a in "xyz"] + [f"M{a}{k + 1}" for a in "xyz"]
+    corners.append(c.T * 1e3)
+pos = mk.positions @ R * 1e3
+pts = np.ones((4, pos.shape[1], nf))
+pts[:3] = np.transpose(np.nan_to_num(pos), (2, 1, 0))
+cc = ezc3d.c3d()
+cc["parameters"]["POINT"]["RATE"]["value"] = [float(mk.rate)]
+cc["parameters"]["POINT"]["LABELS"]["value"] = list(mk.names)
+cc["parameters"]["POINT"]["UNITS"]["value"] = ["mm"]
+cc["data"]["points"] = pts
+cc["parameters"]["ANALOG"]["RATE"]["value"] = [float(mk.rate * spf)]
+cc["parameters"]["ANALOG"]["LABELS"]["value"] = labels
+cc["parameters"]["ANALOG"]["UNITS"]["value"] = (["N"] * 3 + ["Nmm"] * 3) * 2
+cc["data"]["analogs"] = np.array(chans)[None]
+cc.add_parameter("FORCE_PLATFORM", "USED", [2])
+cc.add_parameter("FORCE_PLATFORM", "TYPE", [2, 2])
+cc.add_parameter("FORCE_PLATFORM", "ZERO", [0, 0])
+cc.add_parameter("FORCE_PLATFORM", "CORNERS", np.stack(corners, axis=2))
+cc.add_parameter("FORCE_PLATFORM", "ORIGIN", np.zeros((3, 2)))
+cc.add_parameter("FORCE_PLATFORM", "CHANNEL", list(range(1, 13)))
+cc["parameters"]["FORCE_PLATFORM"]["CHANNEL"]["value"] = np.arange(1, 13).reshape(2, 6).T
+cc.write(out + "/split.c3d")
+c = ezc3d.c3d(pig)
+c["parameters"]["FORCE_PLATFORM"]["USED"]["value"] = [0]
+c.write(out + "/noplates.c3d")
+'''
+
+
+@pytest.fixture(scope="module")
+def c3ds(shared_data, tmp_path_factory):
+    import subprocess
+    import sys
+
+    from pathlib import Path
+
+    pytest.importorskip("ezc3d")
+    d = shared_data / GAIT
+    out = tmp_path_factory.mktemp("c3d")
+    repo = Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, "-c", _C3DS, str(repo), str(d / "subject01_walk1_grf.mot"),
+                    str(d / "subject01_walk1.trc"), str(shared_data / "mocap_pig" / "Movement_trial.c3d"), str(out)],
+                   check=True, capture_output=True)
+    return out
+
+
+def _args(shared_data, out, *extra):
+    d = shared_data / GAIT
+    return ["dynamics", str(d / "subject01_simbody.osim"), str(d / "subject01_walk1_ik.mot"), "--out", str(out),
+            "--start", "0.5", "--end", "1.6", "--quiet", *extra]
+
+
+@pytest.fixture(scope="module")
+def cli_loads(shared_data, tmp_path_factory):
+    from personalize.cli import main
+
+    d = shared_data / GAIT
+    out = tmp_path_factory.mktemp("dyn") / "loads"
+    assert main(_args(shared_data, out, "--loads", str(d / "subject01_walk1_grf.mot"), str(d / "subject01_walk1_grf.xml"))) == 0
+    return out
+
+
+def test_cli_loads_writes_opensim_files(cli_loads, trial):
+    import json
+
+    from kinematics.inverse_dynamics import trial_inverse_dynamics
+    from kinematics.storage import read_sto
+
+    model, tab, loads = trial
+    ref = trial_inverse_dynamics(model, tab.time, tab.select(model.coordinate_names), loads, start=0.5, end=1.6)
+    got = read_sto(cli_loads / "inverse_dynamics.sto")
+    assert got.columns == tuple(ref.labels) and got.n_frames == 67
+    assert np.allclose(got.values, ref.tau, atol=1e-6 * np.abs(ref.tau).max())
+    per_kg = read_sto(cli_loads / "inverse_dynamics_per_kg.sto")
+    assert np.allclose(per_kg.values * ref.mass, got.values, atol=1e-4)
+    assert (cli_loads / "joint_powers.sto").is_file() and (cli_loads / "moments.png").stat().st_size > 10_000
+    rep = json.loads((cli_loads / "report.json").read_text())
+    assert rep["bodies_loaded"] == ["calcn_r", "calcn_l"] and not rep["kinematics_only"]
+    assert "N m" in (cli_loads / "inverse_dynamics.sto").read_text().split("endheader")[0]
+
+
+def test_cli_c3d_split_belt_matches_loads(cli_loads, c3ds, shared_data, tmp_path):
+    """The same walk from a C3D (Z-up lab, two plates): feet assigned, rotated to OpenSim's ground, and the
+    moments within 1 % (joints) / 2 % (pelvis residuals) of their peak of the .mot/.xml run (the plates are
+    box-averaged to the 60 Hz frames, the .mot is sampled at 600 Hz)."""
+    import json
+
+    from kinematics.external_loads import read_external_loads
+    from kinematics.storage import read_sto
+    from personalize.cli import main
+
+    out = tmp_path / "c3d"
+    assert main(_args(shared_data, out, "--c3d", str(c3ds / "split.c3d"), "--no-filter-loads")) == 0
+    a, b = read_sto(cli_loads / "inverse_dynamics.sto"), read_sto(out / "inverse_dynamics.sto")
+    rel = np.sqrt(np.mean((a.values - b.values) ** 2, axis=0)) / np.abs(a.values).max(axis=0)
+    joints = [i for i, c in enumerate(a.columns) if not c.startswith("pelvis")]
+    assert rel[joints].max() < 0.01 and rel.max() < 0.02, dict(zip(a.columns, rel.round(4)))
+    rep = json.loads((out / "report.json").read_text())
+    assert [c["foot"] for c in rep["contacts"]] == ["R", "L", "R", "L", "R", "L"]
+    assert all(c["cop_to_foot_m"][c["foot"]] < 0.03 for c in rep["contacts"])
+    assert rep["excluded_intervals_s"] == []
+    back = read_external_loads(out / "grf.xml")
+    assert [ld.body for ld in back] == ["calcn_r", "calcn_l"]
+    assert rep["load_cutoff_hz"] is None  # --no-filter-loads (plates are filtered at the cut-off by default)
+
+
+def test_cli_c3d_in_another_lab_refused(shared_data, tmp_path, capsys):
+    """mocap_pig's plates (5.8-8.5 s) with subject01's kinematics (0.5-1.6 s): no common time -> one-line error."""
+    from personalize.cli import main
+
+    out = tmp_path / "bad"
+    rc = main(_args(shared_data, out, "--c3d", str(shared_data / "mocap_pig" / "Movement_trial.c3d")))
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "no ground-reaction data" in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+def test_cli_c3d_without_plates_kinematics_only(c3ds, shared_data, tmp_path, capsys):
+    import json
+
+    from personalize.cli import main
+
+    out = tmp_path / "kin"
+    assert main([a for a in _args(shared_data, out, "--c3d", str(c3ds / "noplates.c3d")) if a != "--quiet"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["coordinates_filtered.sto", "report.json"]
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["kinematics_only"] and any("kinematics only" in n for n in rep["notes"])
+    assert "kinematics only" in capsys.readouterr().err
+
+
+def test_cli_needs_one_load_source(shared_data, tmp_path, capsys):
+    from personalize.cli import main
+
+    d = shared_data / GAIT
+    both = _args(shared_data, tmp_path / "x", "--c3d", str(d / "subject01_walk1.trc"), "--loads",
+                 str(d / "subject01_walk1_grf.mot"), str(d / "subject01_walk1_grf.xml"))
+    assert main(both) == 2 and "exactly one source" in capsys.readouterr().err
+    assert main(_args(shared_data, tmp_path / "y")) == 2
+    assert main(_args(shared_data, tmp_path / "z", "--c3d", str(tmp_path / "missing.c3d"))) == 2
+    assert "not found" in capsys.readouterr().err
