@@ -250,3 +250,32 @@ def test_bad_inputs_are_one_line_errors(shared_data, tmp_path):
         load_real_anatomy(shared_data / "bones" / "ICL_MRI", shared_data / "reference_models" / "manual_LHDL_CT.osim")
     with pytest.raises(InputError, match="vertical"):
         make_lab("y-up", "+y")
+
+
+def test_cli_phantom_anatomy(shared_data, tmp_path, capsys):
+    """``personalize phantom --anatomy --reference``: a Y-up ior subject with Static.c3d, TRC trials, no functional trial."""
+    from personalize.cli import main
+
+    ref = shared_data / "reference_models" / "manual_ICL_MRI.osim"
+    out = tmp_path / "ph"
+    code = main(["phantom", "--out", str(out), "--anatomy", str(shared_data / "bones" / "ICL_MRI"), "--reference",
+                 str(ref), "--marker-set", "ior", "--lab", "y-up", "--walk", "-x", "--tissue", "obese",
+                 "--static-name", "Static", "--static-frames", "7", "--no-functional", "--format", "trc",
+                 "--voxel", "4", "4", "4", "--no-sta"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    assert "wrote real-anatomy phantom" in cap.out
+    names = {p.name for p in out.iterdir()}
+    assert {"Static.trc", "gait_01.trc", "labels.nii.gz", "markers.json", "truth_model.osim", "truth.json",
+            "subject.json"} <= names and "functional_hip.trc" not in names
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["lab"]["forward"] == [-1.0, 0.0, 0.0] and truth["tissue"]["build"] == "obese"
+    assert truth["tissue"]["thickness_m"]["PSI"] > 0.02
+    for bad in (["--anatomy", str(shared_data / "bones" / "ICL_MRI")],             # no --reference
+                ["--anatomy", str(tmp_path / "none"), "--reference", str(ref)],
+                ["--marker-set", "ior"],                                             # analytic + other set
+                ["--anatomy", str(shared_data / "bones" / "ICL_MRI"), "--reference", str(ref), "--lab", "x-up"]):
+        code = main(["phantom", "--out", str(tmp_path / "bad"), *bad])
+        err = capsys.readouterr().err
+        assert code == 2 and err.startswith("error: ") and len(err.strip().splitlines()) == 1, (bad, err)
+        assert not (tmp_path / "bad").exists()

@@ -138,8 +138,7 @@ def _real_phantom(out: Path, anatomy: Path | None, reference: Path | None, *, se
     lab_ = make_lab(lab, walk)
     ms = resolve_marker_set(marker_set)
     console = Console(stderr=True)
-    console.print(f"reading {anatomy} and {reference}")
-    anat = load_real_anatomy(anatomy, reference, progress=lambda m: console.print(m))
+    anat = load_real_anatomy(anatomy, reference)        # bad input fails here, before any progress line
     with replaced_dir(out) as stage:
         write_real_subject(stage, anat, marker_set=ms, lab=lab_, build=tissue, seed=seed,
                            voxel=tuple(v / 1000.0 for v in voxel), noise=noise, fibula_mesh=fibula_mesh,
