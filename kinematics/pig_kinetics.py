@@ -227,8 +227,8 @@ def plug_in_gait_kinetics(trial: MarkerTrial, pig: PiGResult, mass: float, grf: 
     -------
     PiGKinetics
     """
-    if not (np.isfinite(mass) and mass > 0):
-        raise InputError(trial.source, f"body mass must be positive, got {mass}")
+    if mass is None or not (np.isfinite(mass) and mass > 0):
+        raise InputError(trial.source, f"body mass must be a positive number of kg (VSK Bodymass), got {mass}")
     if "foot_r" not in pig.segments or "foot_l" not in pig.segments:
         raise InputError(trial.source, "feet not calibrated (run static_foot_offsets): no ankle kinetics")
     rate = trial.rate

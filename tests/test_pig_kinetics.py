@@ -136,3 +136,19 @@ def test_moments_and_powers_match_nexus_over_stance(nexus, side):
         p = kin.power_per_kg(joint + sfx)[stance]
         q = out[f"{side}{name}Power"][stance, 2]
         assert np.nanmean(np.abs(p - q)) / (np.nanmax(q) - np.nanmin(q)) < 0.05, joint
+
+
+def test_bad_inputs_are_refused():
+    from types import SimpleNamespace
+
+    from kinematics.errors import InputError
+    from kinematics.pig_kinetics import ground_reactions
+
+    trial, pig, _ = _still_leg()
+    F = trial.n_frames
+    zero = GroundReaction(np.zeros((F, 3)), np.full((F, 3), np.nan), np.zeros((F, 3)), np.zeros(F, bool))
+    with pytest.raises(InputError, match="still: body mass must be a positive number"):
+        plug_in_gait_kinetics(trial, pig, None, {"R": zero, "L": zero})
+    plates = SimpleNamespace(n_frames=F * 9, source="trial.c3d")  # plates left at the analog rate
+    with pytest.raises(InputError, match="trial.c3d: force plates have 180 frames, the markers 20"):
+        ground_reactions(plates, [], F)
