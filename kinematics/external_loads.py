@@ -79,6 +79,45 @@ class ExternalLoad:
         return ExternalLoad(self.name, self.body, t, interp(self.force), interp(self.point), interp(self.torque))
 
 
+def _read_data(path):
+    """The .mot as a `kinematics.storage.Table`, numeric block converted by numpy in one call.
+
+    Ground-reaction files are sampled at the analog rate (tens of thousands of
+    values); any irregularity (ragged rows, bad numbers, a header that
+    disagrees) falls back to `read_mot`, which names the problem.
+    """
+    from .storage import Table
+
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="strict")
+        lines = text.splitlines()
+        end = next(i for i, ln in enumerate(lines) if ln.strip().lower() == "endheader")
+        header = {}
+        for ln in lines[:end]:
+            if "=" in ln:
+                k, v = ln.split("=", 1)
+                header[k.strip()] = v.strip()
+        k = end + 1
+        while not lines[k].strip():
+            k += 1
+        labels = [x for x in (lines[k].split("\t") if "\t" in lines[k] else lines[k].split()) if x.strip()]
+        labels = [x.strip() for x in labels]
+        rows = [ln for ln in lines[k + 1:] if ln.strip()]
+        if any(len(r.split()) != len(labels) for r in rows):
+            raise ValueError("ragged")
+        data = np.array(" ".join(rows).split(), dtype=float).reshape(len(rows), len(labels))
+        ok = (labels[0].lower() == "time" and data.shape[1] == len(labels) and np.all(np.isfinite(data[:, 0]))
+              and np.all(np.diff(data[:, 0]) >= 0) and int(header.get("nRows", data.shape[0])) == data.shape[0]
+              and int(header.get("nColumns", len(labels))) == len(labels)
+              and header.get("inDegrees", "no").lower() in ("yes", "no"))
+        if ok:
+            return Table(tuple(labels[1:]), data[:, 0], data[:, 1:], header.get("inDegrees", "no").lower() == "yes",
+                         str(path), header)
+    except (OSError, ValueError, StopIteration, IndexError, UnicodeDecodeError):
+        pass
+    return read_mot(path)
+
+
 def _text(el, tag: str, path) -> str:
     child = el.find(tag)
     if child is None or child.text is None or not child.text.strip():
@@ -107,7 +146,7 @@ def read_external_loads(xml_path: str | os.PathLike, mot_path: str | os.PathLike
         mot_path = xml_path.parent / df.text.strip()
         if not Path(mot_path).is_file():
             raise InputError(xml_path, f"its datafile {df.text.strip()!r} is not next to it")
-    table = read_mot(mot_path)
+    table = _read_data(mot_path)
     loads = []
     for f in el.iter("ExternalForce"):
         dis = f.find("isDisabled")

@@ -40,7 +40,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["DEFAULT_CUTOFF_HZ", "ResidualAnalysis", "corrected_cutoff", "derivatives", "lowpass",
+__all__ = ["DEFAULT_CUTOFF_HZ", "ResidualAnalysis", "choose_cutoff", "corrected_cutoff", "derivatives", "lowpass",
            "residual_analysis"]
 
 DEFAULT_CUTOFF_HZ = 6.0
@@ -118,18 +118,20 @@ def _opensim_lowpass(x: np.ndarray, rate: float, cutoff: float, padded: bool = F
     b = np.array([1.0, (3 * wa3 + 2 * wa2 - 2 * wa - 3) / den, (3 * wa3 - 2 * wa2 - 2 * wa + 3) / den,
                   (wa - 1.0) * (wa2 - wa + 1.0) / den])
 
-    from scipy.signal import lfilter, lfiltic
+    from scipy.signal import lfilter
 
     def one_pass(sig):
         # OpenSim passes the first three samples through and starts the recurrence at sample 3:
-        # lfilter on sig[3:] with the state those samples leave.
+        # lfilter (direct form II transposed) on sig[3:] from the state those samples leave
+        # (inputs and outputs both sig[0:3]).
         out = sig.copy()
         if sig.shape[0] <= 3:
             return out
-        flat = sig.reshape(sig.shape[0], -1)
-        zi = np.stack([lfiltic(a, b, flat[2::-1, j], flat[2::-1, j]) for j in range(flat.shape[1])], axis=1)
-        y, _ = lfilter(a, b, flat[3:], axis=0, zi=zi)
-        out.reshape(sig.shape[0], -1)[3:] = y
+        x0, x1, x2 = sig[0], sig[1], sig[2]
+        zi = np.stack([(a[1] - b[1]) * x2 + (a[2] - b[2]) * x1 + (a[3] - b[3]) * x0,
+                       (a[2] - b[2]) * x2 + (a[3] - b[3]) * x1,
+                       (a[3] - b[3]) * x2])
+        out[3:], _ = lfilter(a, b, sig[3:], axis=0, zi=zi)
         return out
 
     y = one_pass(one_pass(s)[::-1])[::-1]
@@ -199,12 +201,26 @@ def residual_analysis(x, rate: float, cutoffs=None, *, fit_from: float | None = 
     cutoffs : increasing candidate cut-offs (Hz); default 0.5 Hz steps from 1 Hz to 0.4 rate (at most 25 Hz)
     """
     x = np.asarray(x, float)
+    fc = _candidates(cutoffs, rate)
+    res = np.sqrt(np.mean(_residuals(x.reshape(x.shape[0], -1), rate, fc, order) ** 2, axis=1))
+    return _pick(fc, res, fit_from)
+
+
+def _candidates(cutoffs, rate):
     if cutoffs is None:
         cutoffs = np.arange(1.0, min(25.0, 0.4 * rate) + 1e-9, 0.5)
     fc = np.asarray(cutoffs, float)
     if fc.ndim != 1 or fc.size < 4 or np.any(np.diff(fc) <= 0):
         raise InputError("cutoffs", "need at least 4 increasing candidate cut-offs")
-    res = np.array([np.sqrt(np.mean((x - lowpass(x, rate, f, order=order)) ** 2)) for f in fc])
+    return fc
+
+
+def _residuals(x2: np.ndarray, rate: float, fc: np.ndarray, order: int) -> np.ndarray:
+    """Per candidate cut-off and channel, the RMS over samples of x - lowpass(x): (K, C)."""
+    return np.stack([np.sqrt(np.mean((x2 - lowpass(x2, rate, f, order=order)) ** 2, axis=0)) for f in fc])
+
+
+def _pick(fc: np.ndarray, res: np.ndarray, fit_from) -> ResidualAnalysis:
     lo = fit_from if fit_from is not None else fc[fc.size // 2]
     sel = fc >= lo
     if sel.sum() < 2:
@@ -221,3 +237,21 @@ def residual_analysis(x, rate: float, cutoffs=None, *, fit_from: float | None = 
         r0, r1 = res[k - 1], res[k]
         chosen = float(fc[k - 1] + (r0 - noise) / (r0 - r1) * (fc[k] - fc[k - 1]))
     return ResidualAnalysis(fc, res, noise, chosen)
+
+
+def choose_cutoff(x, rate: float, cutoffs=None) -> tuple[float, np.ndarray]:
+    """One cut-off for several channels: the median of their residual-analysis cut-offs.
+
+    Channels that do not move (range under 1e-9) are skipped.  Returns the
+    chosen cut-off (Hz) and the per-channel cut-offs (NaN for skipped ones).
+    """
+    x = np.asarray(x, float)
+    x2 = x.reshape(x.shape[0], -1)
+    per = np.full(x2.shape[1], np.nan)
+    moving = np.ptp(x2, axis=0) > 1e-9
+    if not moving.any():
+        raise InputError("cutoff", "no channel moves: a residual analysis cannot choose a cut-off")
+    fc = _candidates(cutoffs, rate)
+    res = _residuals(x2[:, moving], rate, fc, 2)  # all channels filtered together per candidate
+    per[moving] = [_pick(fc, res[:, j], None).cutoff for j in range(res.shape[1])]
+    return float(np.nanmedian(per)), per

@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .dynamics import inverse_dynamics
 from .errors import InputError
 from .external_loads import ExternalLoad
 from .filtering import DEFAULT_CUTOFF_HZ, _opensim_lowpass, lowpass
@@ -221,10 +220,8 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
     applied = []
     bodies = []
     unknown = np.zeros(t.shape[0], bool)
+    state = ch.motion(qf, qd, qdd)  # one motion pass: body origins for the loads and the inertia loads
     if loads:
-        from .fk import forward_kinematics
-
-        pos = forward_kinematics(model, qf).positions
         for ld in loads:
             P = ld.point
             try:
@@ -248,7 +245,7 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
                 Mk[outside] = 0.0
                 unknown |= outside
                 notes.append(f"{ld.name}: no load data for {int(outside.sum())} frames: moments not computed there")
-            ob = pos[:, b]
+            ob = state.bodies[b].r
             Pk = _interp_cubic(ld.time, P, t)
             on = np.linalg.norm(Fk, axis=1) > 20.0
             if on.sum() >= 3:
@@ -263,7 +260,7 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
             notes.append(f"loads low-pass filtered at {load_cutoff:g} Hz")
     else:
         notes.append("no external loads: kinematics-driven moments only (no ground reactions)")
-    tau = inverse_dynamics(model, qf, qd, qdd, applied, chain=ch)
+    tau = -ch.force(state, applied, model.gravity, inertia=True)  # = dynamics.inverse_dynamics
     tau[unknown] = np.nan
     for t0, t1, why in exclude:
         bad = (t >= t0 - 1e-9) & (t <= t1 + 1e-9)

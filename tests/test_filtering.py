@@ -101,3 +101,16 @@ def test_bad_input_refused():
         lowpass(np.zeros(50), 10.0, 6.0)
     with pytest.raises(InputError, match="method"):
         lowpass(np.zeros(50), 100.0, 6.0, method="median")
+
+
+def test_choose_cutoff_on_real_ik(shared_data):
+    """Residual analysis of subject01's IK coordinates: gait's 4-12 Hz band (Winter: 4-8 Hz for walking
+    markers; IK joint angles carry some less noise), mtp (locked, constant) skipped."""
+    from kinematics.filtering import choose_cutoff
+    from kinematics.storage import read_mot
+
+    tab = read_mot(shared_data / "opensim_gait2392" / "subject01_walk1_ik.mot")
+    fc, per = choose_cutoff(tab.values, 60.0)
+    assert 4.0 < fc < 12.0
+    mtp = [j for j, c in enumerate(tab.columns) if c.startswith("mtp")]
+    assert np.isnan(per[mtp]).all() and np.isfinite(np.delete(per, mtp)).all()

@@ -210,7 +210,6 @@ c.write(out + "/noplates.c3d")
 def c3ds(shared_data, tmp_path_factory):
     import subprocess
     import sys
-
     from pathlib import Path
 
     pytest.importorskip("ezc3d")
@@ -317,3 +316,16 @@ def test_cli_needs_one_load_source(shared_data, tmp_path, capsys):
     assert main(_args(shared_data, tmp_path / "y")) == 2
     assert main(_args(shared_data, tmp_path / "z", "--c3d", str(tmp_path / "missing.c3d"))) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_ragged_ground_reaction_file_refused(shared_data, tmp_path):
+    """The fast numeric reader of the .mot falls back to the checked reader, which names the bad line."""
+    from kinematics.external_loads import read_external_loads
+
+    d = shared_data / GAIT
+    lines = (d / "subject01_walk1_grf.mot").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.strip().lower() == "endheader") + 5
+    lines[k] = "\t".join(lines[k].split("\t")[:-2])
+    (tmp_path / "grf.mot").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"line \d+: 17 values for 19 column labels"):
+        read_external_loads(d / "subject01_walk1_grf.xml", tmp_path / "grf.mot")

@@ -3,7 +3,8 @@
 Inverse dynamics of a whole trial (`kinematics.inverse_dynamics.trial_inverse_dynamics`):
 the coordinates are low-pass filtered (``--cutoff``, 6 Hz; OpenSim's
 InverseDynamicsTool filter by default, ``--filter winter`` for Winter's
-corrected double pass), differentiated with quintic splines, and the ground
+corrected double pass; ``--cutoff auto``: Winter's residual analysis, median
+over the coordinates), differentiated with quintic splines, and the ground
 reactions applied at the centre of pressure on the bodies named in the
 ExternalLoads file (``--loads``) or on ``calcn_r`` / ``calcn_l`` from the
 force plates of a C3D trial (``--c3d``: feet assigned from the markers,
@@ -78,7 +79,7 @@ def plot_moments(path: Path, result) -> None:
 
 
 def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Optional[tuple] = None,
-                 c3d: Optional[Path] = None, cutoff: float = 6.0, method: str = "opensim",
+                 c3d: Optional[Path] = None, cutoff: float | str = 6.0, method: str = "opensim",
                  filter_loads: Optional[bool] = None, start: Optional[float] = None, end: Optional[float] = None,
                  plot: bool = True, overwrite: bool = False, quiet: bool = False) -> dict:
     """Library form of the command; returns the report dict."""
@@ -97,8 +98,14 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
         raise InputError("--loads/--c3d", "give exactly one source of ground reactions: --loads GRF.mot LOADS.xml or --c3d TRIAL.c3d")
     if method not in ("opensim", "winter"):
         raise InputError("--filter", f"must be opensim or winter, not {method!r}")
-    if not cutoff > 0:
-        raise InputError("--cutoff", f"must be a positive frequency in Hz, got {cutoff}")
+    auto = str(cutoff).strip().lower() == "auto"
+    if not auto:
+        try:
+            cutoff = float(cutoff)
+        except ValueError:
+            raise InputError("--cutoff", f"must be a frequency in Hz or 'auto', got {cutoff!r}") from None
+        if not cutoff > 0:
+            raise InputError("--cutoff", f"must be a positive frequency in Hz, got {cutoff}")
     inputs = [model_path, kinematics] + (list(loads) if loads else [c3d])
     for p in inputs:
         if not Path(p).is_file():
@@ -109,6 +116,13 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
     tab = read_mot(kinematics).to_radians([c for c, k in zip(model.coordinate_names, kinds) if k == "rotational"])
     q = tab.select(model.coordinate_names)
     notes: list[str] = []
+    per_coordinate = None
+    if auto:
+        from kinematics.filtering import choose_cutoff
+
+        cutoff, per = choose_cutoff(q, 1.0 / float(np.mean(np.diff(tab.time))))
+        per_coordinate = {c: (None if not np.isfinite(v) else float(v)) for c, v in zip(model.coordinate_names, per)}
+        notes.append(f"cut-off {cutoff:.2f} Hz by Winter's residual analysis (median over the coordinates)")
     exclude: tuple = ()
     if loads is not None:
         grf, xml = loads
@@ -127,7 +141,7 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
     report = {
         "model": str(model_path), "kinematics": str(kinematics),
         "loads": [str(p) for p in loads] if loads else None, "c3d": str(c3d) if c3d else None,
-        "cutoff_hz": cutoff, "filter": method, "load_cutoff_hz": load_cut,
+        "cutoff_hz": cutoff, "cutoff_per_coordinate_hz": per_coordinate, "filter": method, "load_cutoff_hz": load_cut,
         "frames": int(res.time.shape[0]), "time_s": [float(res.time[0]), float(res.time[-1])],
         "model_mass_kg": res.mass, "bodies_loaded": list(res.loads),
         "contacts": [{"plate": c.plate + 1, "start_s": c.start_time, "end_s": c.end_time, "foot": c.foot,
@@ -142,8 +156,8 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
                 + [f"{c}_udot" for c in res.coordinates])
         write_sto(stage / "coordinates_filtered.sto", cols, res.time, np.hstack([res.q, res.qd, res.qdd]),
                   name="coordinates_filtered",
-                  header_extra=[f"Coordinates low-pass filtered at {cutoff:g} Hz ({method}); q rad or m, "
-                                "u = dq/dt, udot = d2q/dt2; model coordinates"])
+                  header_extra=[f"Coordinates low-pass filtered at {cutoff:g} Hz ({method});",
+                                "q rad or m, u = dq/dt, udot = d2q/dt2; model coordinates"])
         if not kinematics_only:
             write_inverse_dynamics(stage / "inverse_dynamics.sto", res)
             write_inverse_dynamics(stage / "inverse_dynamics_per_kg.sto", res, per_kg=True)
@@ -174,7 +188,7 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(..., "--out", help="output folder"),
         loads: Optional[tuple[Path, Path]] = typer.Option(None, "--loads", help="GRF.mot LOADS.xml (OpenSim external loads)"),
         c3d: Optional[Path] = typer.Option(None, "--c3d", help="C3D trial with force plates and foot markers"),
-        cutoff: float = typer.Option(6.0, "--cutoff", help="low-pass cut-off of coordinates (and C3D forces), Hz"),
+        cutoff: str = typer.Option("6", "--cutoff", help="low-pass cut-off of coordinates (and C3D forces), Hz, or 'auto' (Winter's residual analysis)"),
         method: str = typer.Option("opensim", "--filter", help="opensim (InverseDynamicsTool) or winter"),
         filter_loads: Optional[bool] = typer.Option(None, "--filter-loads/--no-filter-loads",
                                                     help="filter the forces at the cut-off (default: yes for --c3d, no for --loads)"),
