@@ -5,21 +5,22 @@
    median of ``--repeat`` runs; CPU time is printed too (the honest figure on
    a shared machine).  Target: detection < 2 s on 2 cores (STAPLE: 6-12 s in
    MATLAB on comparable sets).
-2. Real bones against the hand-built model ``manual_ICL_MRI.osim``: distance
-   of the hip, knee, ankle and subtalar joint centres and unsigned angle of
-   their Z axes, for this code and for the STAPLE model
-   ``automatic_ICL_MRI.osim`` (and the hip centre's change with the articular
-   cap angle, +-20 %).  For the subtalar joint, whose origin along
-   the axis is a convention, the distance from the reference centre to the
-   detected axis line is printed as well.
-   The talar trochlea's radius profile about each convention's axis, the hand-built
-   cylinder refitted on the talus surface within 0.3 / 0.5 / 1 mm of itself, and the
-   sensitivity of our ankle to the dome seed's parameters (+-20 %) follow,
-   then STAPLE's talus-intrinsic trochlea convention (reproduced in
-   `personalize.landmarks.trochlea`) and its variants, with their +-20 %
-   sensitivity, on ICL-MRI and TLEM2-MRI.
-3. TLEM2-MRI, both sides (no reference model): joint centres, left/right
-   consistency (segment lengths, knee-ankle axis angle) and flags.
+2. Real bones against their expert-built models (``manual_ICL_MRI.osim``,
+   ``manual_LHDL_CT.osim``): per joint frame (hip parent and child, knee,
+   ankle, subtalar) the distance of the centres and the unsigned angle of the
+   Z axes, ours and STAPLE's (``automatic_*.osim``), the mean centre
+   distance, the knee cross-check, the share of centres and axes within 3
+   stated sd, and the model-error constants chosen on each set and checked
+   on the other.  Then (unless ``--sets-only``) the ICL diagnostics: the hip
+   centre's change with the articular cap angle (+-20 %), the talar
+   trochlea's radius profile about each convention's axis, the hand-built
+   cylinder refitted on the talus surface within 0.3 / 0.5 / 1 mm of itself,
+   the sensitivity of our ankle to the dome seed's parameters (+-20 %), and
+   STAPLE's talus-intrinsic trochlea convention (`personalize.landmarks.trochlea`).
+3. TLEM2-MRI (both sides), MC22 (both sides), VAKHUM-CT (no pelvis, no
+   foot), none with a reference model: joints built and dropped, flags,
+   segment lengths and left/right differences, articular radii, the right
+   axes against the mirrored left ones.
 4. ``--phantom``: errors over 10 phantom seeds at 1 mm isotropic and at
    0.5 x 0.5 x 2 mm with segmentation noise (95th percentiles; slow).
 5. ``--validation N``: both legs of the N subjects ``personalize validate --seed 2026``
@@ -29,7 +30,7 @@
 
 Usage::
 
-    python benchmarks/landmarks.py [--repeat 3] [--phantom] [--validation 20] [--robustness] [--json benchmarks/results/landmarks.json]
+    python benchmarks/landmarks.py [--repeat 3] [--sets-only] [--phantom] [--validation 20] [--robustness] [--json benchmarks/results/landmarks.json]
 """
 from __future__ import annotations
 
@@ -77,31 +78,87 @@ def timing(repeat: int) -> dict:
     return out
 
 
-def reference_comparison() -> dict:
+EXPERT_SETS = ("ICL_MRI", "LHDL_CT")
+#: joint frames compared with the expert-built models (joint, side of the joint)
+FRAMES = (("hip_r", "parent"), ("hip_r", "child"), ("knee_r", "parent"), ("ankle_r", "parent"),
+          ("subtalar_r", "parent"))
+
+
+def _detect(name: str):
     from personalize.frames import joints_from_landmarks
     from personalize.landmarks import detect_landmarks
-    from personalize.reference_models import compare_joints, read_reference_joints
     from personalize.surfaces import load_bones
 
+    ls = detect_landmarks(load_bones(DATA / "bones" / name))
+    J, dropped = joints_from_landmarks(ls)
+    return ls, J, dropped
+
+
+def reference_comparison() -> dict:
+    """ICL-MRI and LHDL-CT against their expert-built models, STAPLE beside; coverage; model-error calibration.
+
+    Per joint frame: distance of the centres and unsigned angle of the Z axes,
+    ours and STAPLE's, and whether ours is within STAPLE's + 1 mm / + 1 deg;
+    the mean centre distance over hip, knee, ankle, subtalar; the knee
+    cross-check; the share of centres and axes within 3 stated sd; the
+    model-error constants chosen on each set and their coverage on the other.
+    """
+    from personalize.reference_models import (calibrate_model_error, compare_joints, coverage, error_rows,
+                                              read_reference_joints)
+
     ref = DATA / "reference_models"
-    manual = read_reference_joints(ref / "manual_ICL_MRI.osim", use_opensim=False)
-    staple = read_reference_joints(ref / "automatic_ICL_MRI.osim", use_opensim=False)
-    ls = detect_landmarks(load_bones(DATA / "bones" / "ICL_MRI"))
-    J, _ = joints_from_landmarks(ls)
-    names = ["hip_r", "knee_r", "ankle_r", "subtalar_r"]
-    ours = compare_joints(J, manual, names)
-    st = compare_joints(staple, manual, names)
-    print("\nICL-MRI: difference from the hand-built model (manual_ICL_MRI.osim)")
-    print(f"{'joint':12s} {'ours mm':>9s} {'STAPLE mm':>10s} {'ours deg':>9s} {'STAPLE deg':>11s}  note")
-    for n in names:
-        note = ""
-        if "line_distance_mm" in ours[n]:
-            note = (f"centre-to-axis-line: ours {ours[n]['line_distance_mm']:.2f} mm, "
-                    f"STAPLE {st[n]['line_distance_mm']:.2f} mm")
-        print(f"{n:12s} {ours[n]['distance_mm']:9.2f} {st[n]['distance_mm']:10.2f} {ours[n]['angle_deg']:9.2f} "
-              f"{st[n]['angle_deg']:11.2f}  {note}")
-    print("(angles between Z axes are unsigned; the hip Z is the pelvic frame's, as in both models)")
-    return {"ours": ours, "staple": st, "flags": {k: v.flags for k, v in ls.bones.items() if v.flags}}
+    out, rows = {}, {}
+    for s in EXPERT_SETS:
+        manual = read_reference_joints(ref / f"manual_{s}.osim", use_opensim=False)
+        staple = read_reference_joints(ref / f"automatic_{s}.osim", use_opensim=False)
+        ls, J, dropped = _detect(s)
+        print(f"\n{s}: difference from the hand-built model (manual_{s}.osim); limit = STAPLE + 1 mm / + 1 deg")
+        print(f"{'joint frame':20s} {'ours mm':>8s} {'STAPLE mm':>10s} {'ours deg':>9s} {'STAPLE deg':>11s}  within")
+        tab = {}
+        for n, fr in FRAMES:
+            o = compare_joints(J, manual, [n], frame=fr).get(n)
+            st = compare_joints(staple, manual, [n], frame=fr).get(n)
+            if o is None or st is None:
+                continue
+            ok = o["distance_mm"] <= st["distance_mm"] + 1 and o["angle_deg"] <= st["angle_deg"] + 1
+            tab[f"{n} {fr}"] = {"ours": o, "staple": st, "within": ok}
+            print(f"{n + ' ' + fr:20s} {o['distance_mm']:8.2f} {st['distance_mm']:10.2f} {o['angle_deg']:9.2f} "
+                  f"{st['angle_deg']:11.2f}  {'yes' if ok else 'NO'}")
+        names = ["hip_r", "knee_r", "ankle_r", "subtalar_r"]
+        mo = float(np.mean([compare_joints(J, manual, [n])[n]["distance_mm"] for n in names]))
+        ms = float(np.mean([compare_joints(staple, manual, [n])[n]["distance_mm"] for n in names]))
+        print(f"mean centre distance (hip, knee, ankle, subtalar): ours {mo:.2f} mm, STAPLE {ms:.2f} mm")
+        kc = ls.bones["femur_r"].fits.get("knee_cross_check", {})
+        if kc:
+            c = kc["centre"]
+            print("knee estimates (offset from the combined centre across the axis, mm): "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in c["offsets_mm"].items())
+                  + f"; left out: {', '.join(c['left_out']) or 'none'}")
+        rows[s] = error_rows(J, manual)
+        cov = coverage(rows[s])
+        print(f"within 3 stated sd: {cov['covered']} of {cov['total']} centres and axes ("
+              + ", ".join(f"{o['what']} {o['ratio']:.2f}" for o in cov["rows"]) + " sd)")
+        out[s] = {"frames": tab, "mean_centre_mm": {"ours": mo, "staple": ms}, "knee_cross_check": kc,
+                  "coverage": {k: v for k, v in cov.items() if k != "rows"}, "coverage_rows": cov["rows"],
+                  "dropped": dropped, "flags": {k: v.flags for k, v in ls.bones.items() if v.flags}}
+    if len(rows) == 2:
+        from personalize.frames import MODEL_ERROR
+
+        print("\nmodel-error term (centre: fraction of the articular radius; axis: deg), chosen on one set, "
+              "checked on the other:")
+        cal = {}
+        for a, b in (EXPERT_SETS, EXPERT_SETS[::-1]):
+            k = calibrate_model_error(rows[a])
+            ca, cb = coverage(rows[a], k), coverage(rows[b], k)
+            cal[f"chosen_on_{a}"] = {"constants": k, a: ca["fraction"], b: cb["fraction"],
+                                     "not_covered": [o["what"] for o in cb["rows"] if o["ratio"] > 3]}
+            print(f"  chosen on {a}: centre {k['centre']:.4f} R, axis {k['axis_deg']:.2f} deg -> within 3 sd "
+                  f"{ca['covered']}/{ca['total']} on {a}, {cb['covered']}/{cb['total']} on {b}"
+                  + (f" (not: {', '.join(cal[f'chosen_on_{a}']['not_covered'])})" if cal[f"chosen_on_{a}"]["not_covered"] else ""))
+        print(f"  in force (personalize.frames.MODEL_ERROR): centre {MODEL_ERROR['knee']['centre']} R, "
+              f"axis {MODEL_ERROR['knee']['axis_deg']} deg")
+        out["calibration"] = cal
+    return out
 
 
 def hip_cap_sensitivity() -> dict:
@@ -337,33 +394,69 @@ def staple_convention() -> dict:
     return out
 
 
-def tlem2() -> dict:
-    from personalize.frames import joints_from_landmarks
-    from personalize.landmarks import detect_landmarks
-    from personalize.surfaces import load_bones
+OTHER_SETS = ("TLEM2_MRI", "MC22", "VAKHUM_CT")
 
-    ls = detect_landmarks(load_bones(DATA / "bones" / "TLEM2_MRI"))
-    J, dropped = joints_from_landmarks(ls)
-    print("\nTLEM2-MRI (both sides; no reference model): joint centres (mm, MRI frame) and Z axes")
-    out = {"joints": {}, "dropped": dropped, "sides": {k: v.side for k, v in ls.bones.items()},
-           "flags": {k: v.flags for k, v in ls.bones.items() if v.flags}}
-    for k in sorted(J):
-        j = J[k]
-        out["joints"][k] = {"origin_mm": (j.origin * 1e3).round(2).tolist(), "z": j.rotation[:, 2].round(4).tolist(),
-                            "axis_sd_deg": round(j.axis_sd_deg, 3)}
-        print(f"{k:12s} origin {np.round(j.origin * 1e3, 1)}  Z {np.round(j.rotation[:, 2], 3)}  sd {j.axis_sd_deg:.2f} deg")
-    rows = {}
-    for s in ("r", "l"):
-        if {f"hip_{s}", f"knee_{s}", f"ankle_{s}"} <= set(J):
-            thigh = np.linalg.norm(J[f"hip_{s}"].origin - J[f"knee_{s}"].origin) * 1e3
-            shank = np.linalg.norm(J[f"knee_{s}"].origin - J[f"ankle_{s}"].origin) * 1e3
-            tors = np.degrees(np.arccos(np.clip(J[f"knee_{s}"].rotation[:, 2] @ J[f"ankle_{s}"].rotation[:, 2], -1, 1)))
-            rows[s] = {"thigh_mm": thigh, "shank_mm": shank, "knee_ankle_axis_deg": tors}
-            print(f"side {s}: hip-knee {thigh:.1f} mm, knee-ankle {shank:.1f} mm, knee/ankle axis angle {tors:.1f} deg")
-    out["consistency"] = rows
-    for k, v in out["flags"].items():
-        print(f"  flags {k}: {v}")
-    print(f"  sides detected: {out['sides']}")
+
+def _angle(a, b) -> float:
+    return float(np.degrees(np.arccos(np.clip(abs(float(np.dot(a, b))), 0.0, 1.0))))
+
+
+def other_sets() -> dict:
+    """TLEM2-MRI, MC22, VAKHUM-CT (no expert models): joints present, left/right consistency, plausibility.
+
+    Per set: the joints built and dropped (and why), the flagged bones; per
+    side: thigh (hip-knee) and shank (knee-ankle) lengths, knee/ankle axis
+    angle, articular radii; with both sides the left-right differences of the
+    lengths (%) and the angle between the right joint axes and the mirrored
+    left ones (the mirror plane is the sagittal plane of the pelvis when
+    there is one, else lengths only).
+    """
+    out = {}
+    for name in OTHER_SETS:
+        if not (DATA / "bones" / name).is_dir():
+            continue
+        ls, J, dropped = _detect(name)
+        print(f"\n{name}: {len(J)} joints ({', '.join(sorted(J))}); dropped: "
+              + (", ".join(f"{k} ({v})" for k, v in sorted(dropped.items())) or "none"))
+        flags = {k: v.flags for k, v in ls.bones.items() if v.flags}
+        for k, v in flags.items():
+            print(f"  flags {k}: {v}; {'; '.join(ls.bones[k].notes[-2:])}")
+        side_rows = {}
+        for s in ("r", "l"):
+            fem = ls.bones.get(f"femur_{s}")
+            tal = ls.bones.get(f"talus_{s}")
+            row = {}
+            if {f"hip_{s}", f"knee_{s}"} <= set(J):
+                row["thigh_mm"] = float(np.linalg.norm(J[f"hip_{s}"].origin - J[f"knee_{s}"].origin) * 1e3)
+            if {f"knee_{s}", f"ankle_{s}"} <= set(J):
+                row["shank_mm"] = float(np.linalg.norm(J[f"knee_{s}"].origin - J[f"ankle_{s}"].origin) * 1e3)
+                row["knee_ankle_axis_deg"] = _angle(J[f"knee_{s}"].rotation[:, 2], J[f"ankle_{s}"].rotation[:, 2])
+            for b, key in ((fem, "femoral_head_radius"), (fem, "medial_condyle_b"), (fem, "lateral_condyle_b"),
+                           (tal, "talar_dome_radius")):
+                if b is not None and key in b.scalars:
+                    row[key.replace("_radius", "") + "_radius_mm" if "radius" in key else key + "_mm"] = \
+                        float(b.scalars[key] * 1e3)
+            if f"knee_{s}" in J and J[f"knee_{s}"].cross_check:
+                row["knee_estimates_agree"] = bool(J[f"knee_{s}"].cross_check["centre"]["agree"])
+            if row:
+                side_rows[s] = row
+                print(f"  side {s}: " + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"
+                                                  for k, v in row.items()))
+        lr = {}
+        if len(side_rows) == 2:
+            for k in ("thigh_mm", "shank_mm"):
+                if k in side_rows["r"] and k in side_rows["l"]:
+                    a, b = side_rows["r"][k], side_rows["l"][k]
+                    lr[k.replace("_mm", "_lr_percent")] = float(200 * abs(a - b) / (a + b))
+            pel = ls.bones.get("pelvis")
+            if pel is not None and "isb" in pel.frames:
+                Z = pel.frames["isb"]["rotation"][:, 2]
+                M = np.eye(3) - 2 * np.outer(Z, Z)
+                for jn in ("knee", "ankle", "subtalar"):
+                    if f"{jn}_r" in J and f"{jn}_l" in J:
+                        lr[f"{jn}_axis_mirror_deg"] = _angle(J[f"{jn}_r"].rotation[:, 2], M @ J[f"{jn}_l"].rotation[:, 2])
+            print("  left/right: " + ", ".join(f"{k} {v:.2f}" for k, v in lr.items()))
+        out[name] = {"joints": sorted(J), "dropped": dropped, "flags": flags, "sides": side_rows, "left_right": lr}
     return out
 
 
@@ -532,16 +625,19 @@ def main() -> None:
                     help="also run both legs of the N subjects of `personalize validate --seed 2026` (slow)")
     ap.add_argument("--robustness", action="store_true",
                     help="also measure the scan ankle angle, joint space, decimation and child-bone cases")
+    ap.add_argument("--sets-only", action="store_true",
+                    help="only the timing and the real-set tables (expert models, other sets)")
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "landmarks.json")
     args = ap.parse_args()
     out = {"units": {"time": "s", "distance": "mm", "angle": "deg"}}
     if (DATA / "bones" / "ICL_MRI").is_dir():
         out["timing"] = timing(args.repeat)
-        out["icl_vs_manual"] = reference_comparison()
-        out["icl_hip_cap"] = hip_cap_sensitivity()
-        out["icl_ankle"] = ankle_diagnostics()
-        out["ankle_staple_convention"] = staple_convention()
-        out["tlem2"] = tlem2()
+        out["expert_models"] = reference_comparison()
+        out["other_sets"] = other_sets()
+        if not args.sets_only:
+            out["icl_hip_cap"] = hip_cap_sensitivity()
+            out["icl_ankle"] = ankle_diagnostics()
+            out["ankle_staple_convention"] = staple_convention()
         if args.robustness:
             out["robustness"] = robustness()
     else:

@@ -223,6 +223,53 @@ ACETABULUM_MODEL_SD = 0.1
 HEAD_MODEL_SD = 0.02
 
 
+#: model sd of each ankle estimate: centre as a fraction of the talar dome radius, axis in degrees.  The
+#: tibial plafond is the dome's concave partner (used when its radius is within 25 % above the dome's);
+#: the malleoli's midpoint and line are a coarse check (the bimalleolar line runs ~20 deg from the
+#: talocrural axis)
+ANKLE_MODEL_SD = {"talar_dome": (0.04, 1.0), "tibial_plafond": (0.2, None), "malleoli": (0.4, 12.0)}
+
+
+def _ankle_centre(tal, tib, fib, s):
+    """Talar dome centre and axis, cross-checked with the tibial plafond and the malleoli (`crosscheck`)."""
+    from personalize.landmarks.crosscheck import Estimate, cross_check, cross_check_directions
+
+    ac, ax = tal.landmarks["talar_dome_centre"], tal.axes["ankle_axis"]
+    rd = _scalar(tal, "talar_dome_radius") or _DEFAULT_RADIUS["ankle"]
+    u = ax.direction
+    on = lambda p, d: np.asarray(p, float) + float((ac.position - p) @ d) * d   # noqa: E731
+    ec = [Estimate("talar_dome", ac.position, ac.cov, ANKLE_MODEL_SD["talar_dome"][0] * rd)]
+    eu = [Estimate("talar_dome", u, np.radians(ax.sd_deg) ** 2 * np.eye(3), np.radians(ANKLE_MODEL_SD["talar_dome"][1]))]
+    pf = tib.fits.get("plafond") if tib is not None else None
+    if pf is not None and rd <= float(pf["radius"]) <= 1.25 * rd and "ankle_axis" in tib.axes:
+        ta = tib.axes["ankle_axis"]
+        ec.append(Estimate("tibial_plafond", on(ta.point, unit_(ta.direction)), (0.001 ** 2) * np.eye(3),
+                           ANKLE_MODEL_SD["tibial_plafond"][0] * rd))
+    P = s.upper()
+    if tib is not None and fib is not None and f"{P}MMA" in tib.landmarks and f"{P}ANK" in fib.landmarks:
+        a, b = tib.landmarks[f"{P}MMA"], fib.landmarks[f"{P}ANK"]
+        d = unit_(b.position - a.position)
+        ec.append(Estimate("malleoli", on(0.5 * (a.position + b.position), d), 0.25 * (a.cov + b.cov),
+                           ANKLE_MODEL_SD["malleoli"][0] * rd))
+        eu.append(Estimate("malleoli", d, np.radians(2.0) ** 2 * np.eye(3), np.radians(ANKLE_MODEL_SD["malleoli"][1])))
+    if len(ec) == 1 and len(eu) == 1:
+        return ac.position, ac.cov, None, u, ax.sd_deg, None, ()
+    rc = cross_check(ec, plane_normal=u)
+    ru = cross_check_directions(eu)
+    sd = float(np.degrees(np.sqrt(np.trace(ru.cov_fit) / 2)))
+    spread = rc.cov_spread
+    fl = () if rc.agree and ru.agree else ("low_confidence",)
+    return rc.value, rc.cov_fit, spread, ru.value, sd, {"centre": rc.to_json("m"), "axis": ru.to_json("rad")}, fl
+
+
+def unit_(v) -> np.ndarray:
+    return _unit(v)
+
+
+def orient_(v, ref) -> np.ndarray:
+    return v if float(np.dot(v, ref)) >= 0 else -np.asarray(v)
+
+
 def _scalar(b, key):
     return float(b.scalars[key]) if b is not None and key in b.scalars else None
 
@@ -369,19 +416,20 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
             if "talar_dome_centre" not in tal.landmarks:
                 dropped[j] = "talar dome not detected"
             else:
-                ac = tal.landmarks["talar_dome_centre"]
-                ax = tal.axes["ankle_axis"]
+                ao, acov, spread, au, asd, cross, fl = _ankle_centre(tal, tib, B.get(f"fibula_{s}"), s)
+                au = orient_(au, tal.axes["ankle_axis"].direction)
                 if knee_c is not None:
-                    yh = knee_c - ac.position
+                    yh = knee_c - ao
                 elif "plateau_centre" in tib.landmarks:
-                    yh = tib.landmarks["plateau_centre"].position - ac.position
+                    yh = tib.landmarks["plateau_centre"].position - ao
                 else:
                     yh = tib.axes["shaft_axis"].direction
                 yt = tal.frames["anatomical"]["rotation"][:, 1] if "anatomical" in tal.frames else yh
-                joints[j] = _joint(j, "ankle", ac.position, ac.cov,
-                                   JointFrame(f"tibia_{s}", ac.position.copy(), frame_zy(ax.direction, yh)),
-                                   JointFrame(f"talus_{s}", ac.position.copy(), frame_zy(ax.direction, yt)),
-                                   ax.sd_deg, _flags(tib, tal), _radius("ankle", None, tal))
+                flags = _flags(tib, tal) + tuple(f for f in fl if f not in _flags(tib, tal))
+                joints[j] = _joint(j, "ankle", ao, acov,
+                                   JointFrame(f"tibia_{s}", ao.copy(), frame_zy(au, yh)),
+                                   JointFrame(f"talus_{s}", ao.copy(), frame_zy(au, yt)),
+                                   asd, flags, _radius("ankle", None, tal), spread, cross)
         # ---- subtalar
         j = f"subtalar_{s}"
         if need(j, f"talus_{s}", f"calcn_{s}"):
