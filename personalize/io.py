@@ -727,6 +727,10 @@ def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | Non
         rep["repairs"] += lrep.get("repairs", [])
         rep.update({k: v for k, v in lrep.items() if k not in rep})
         rep["units_detected"] = use
+        if lrep.get("input") == "point cloud":
+            from .point_clouds import sampling_sd_m
+
+            rep["sampling_sd_m"] = sampling_sd_m(lrep, _UNIT_SCALE[use])
         out[bone] = MeshInput(name=bone, mesh=mesh, source=str(f), unit=use, report=rep)
     notes: list[str] = []
     for foot, side in WHOLE_FOOT.items():

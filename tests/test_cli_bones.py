@@ -117,7 +117,13 @@ def test_tibia_named_femur_is_flagged(tmp_path, capsys):
     d.mkdir()
     _write_ply(d / "femur_r.ply", tibia)
     out = tmp_path / "out"
-    code = main(["bones", str(d), "--out", str(out), "--no-png", "--quiet"])
+    capsys.readouterr()
+    # refused by default (one line naming the file), used as named and flagged with --trust-names
+    assert main(["bones", str(d), "--out", str(out), "--no-png", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "femur_r.ply" in err and "--trust-names" in err
+    assert not out.exists()
+    code = main(["bones", str(d), "--out", str(out), "--no-png", "--quiet", "--trust-names"])
     assert code == 0, capsys.readouterr().err
     fem = json.loads((out / "landmarks.json").read_text())["bones"]["femur_r"]
     assert "name_mismatch" in fem["flags"] and "low_confidence" in fem["flags"]

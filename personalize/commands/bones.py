@@ -12,7 +12,12 @@ Writes, all in the input's coordinates (metres):
 * ``<bone>.png`` - the surface, fitted primitives and landmarks, two views.
 
 The folder is staged: on any error nothing is written.  Exit code 2 for
-unusable input (no recognisable bone, unreadable mesh, wrong units, ...).
+unusable input (no recognisable bone, no usable mesh, mixed units, a bone
+whose shape says it is another bone or the other side - unless
+``--trust-names``).  A single bone that cannot be used (unreadable,
+implausible size, mesh beyond repair) is left out: ``landmarks.json``
+``rejected`` and the ``dropped`` joints say why; ``inputs`` lists the
+repairs made to each mesh.
 """
 from __future__ import annotations
 
@@ -30,7 +35,7 @@ from ..outputs import check_output_dir, replaced_dir
 
 
 def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: bool = True,
-              quiet: bool = False, overwrite: bool = False) -> dict:
+              quiet: bool = False, overwrite: bool = False, trust_names: bool = False) -> dict:
     """Library form of the command; returns ``{"landmarks": ..., "joints": ...}`` (JSON-ready)."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -52,7 +57,7 @@ def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: 
         if not surfaces:
             raise InputError(input, "no recognisable bone surfaces")
         prog.update(task, completed=0, description="detecting landmarks")
-        ls = detect_landmarks(surfaces, progress=tick)
+        ls = detect_landmarks(surfaces, progress=tick, trust_names=trust_names)
     joints, dropped = joints_from_landmarks(ls)
     rejected = dict(getattr(surfaces, "rejected", {}))
     for b, why in rejected.items():
@@ -98,9 +103,12 @@ def register(app: typer.Typer) -> None:
         png: bool = typer.Option(True, "--png/--no-png", help="write a picture per bone"),
         quiet: bool = typer.Option(False, "--quiet", "-q"),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
+        trust_names: bool = typer.Option(False, "--trust-names",
+                                         help="Use a bone whose shape says it is another bone or the other side "
+                                              "under its file/label name (flagged) instead of refusing the set."),
     ) -> None:
         """Landmarks, joint centres and axes (with uncertainties) from bone surfaces."""
-        run_bones(input, out, label_map=label_map, png=png, quiet=quiet, overwrite=overwrite)
+        run_bones(input, out, label_map=label_map, png=png, quiet=quiet, overwrite=overwrite, trust_names=trust_names)
 
 
 _ = np

@@ -11,8 +11,9 @@ from typing import Callable, Mapping
 
 from kinematics.errors import FitError, InputError
 from personalize.bones import BONE_NAMES, canonical_bone_name
+from personalize.io import MESH_SUFFIXES, POINT_SUFFIXES
 
-from .common import (FLAG_LOW_CONFIDENCE, FLAG_NOT_CLOSED, FLAG_SIDE_MISMATCH, Axis,
+from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_NOT_CLOSED, FLAG_SIDE_MISMATCH, Axis,
                      BoneLandmarks, Landmark, LandmarkSet, Surface, as_surface, even_sampling)
 from .femur import detect_femur
 from .foot import detect_calcn, detect_toes
@@ -22,6 +23,7 @@ from .talus import detect_talus
 from .tibia import detect_fibula, detect_tibia, tibia_surface
 
 __all__ = ["Axis", "BoneLandmarks", "Landmark", "LandmarkSet", "Surface", "as_surface", "detect_landmarks",
+           "name_problems",
            "joints_from_landmarks", "detect_femur", "detect_tibia", "detect_fibula", "detect_talus",
            "detect_calcn", "detect_toes", "detect_pelvis", "detect_patella"]
 
@@ -40,7 +42,38 @@ def _check_side(res: BoneLandmarks, name: str) -> None:
         res.flag(FLAG_LOW_CONFIDENCE)
 
 
-def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None] | None = None) -> LandmarkSet:
+def name_problems(ls: LandmarkSet) -> dict[str, str]:
+    """Bones whose shape says they are another bone or the other side: bone -> the detector's reason.
+
+    From the detectors' `FLAG_NAME_MISMATCH` (e.g. no femoral head on a
+    "femur", a femoral head on a "tibia") and `FLAG_SIDE_MISMATCH` (the
+    chirality of the bone's anatomical axes is the other side's).
+    """
+    out: dict[str, str] = {}
+    for name, res in ls.bones.items():
+        why = [n for n in res.notes if (FLAG_NAME_MISMATCH in res.flags and "is this mesh a" in n)
+               or (FLAG_SIDE_MISMATCH in res.flags and "the bone's shape is a" in n)]
+        if why:
+            out[name] = "; ".join(w.removeprefix(f"{name}: ") for w in why)
+    return out
+
+
+def _refuse_names(ls: LandmarkSet, bones: Mapping[str, object]) -> None:
+    problems = name_problems(ls)
+    if not problems:
+        return
+    name = next(b for b in BONE_NAMES if b in problems)
+    src = next((getattr(v, "source", None) for k, v in bones.items() if canonical_bone_name(str(k)) == name), None)
+    volume = src is not None and not str(src).lower().endswith(MESH_SUFFIXES + POINT_SUFFIXES)
+    more = [b for b in problems if b != name]
+    raise InputError(src, f"{name}: {problems[name]}"
+                     + (f" (also {', '.join(more)})" if more else "")
+                     + ("; check the label map" if volume else "; check the file name")
+                     + " (personalize bones --trust-names uses the bones as named)")
+
+
+def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None] | None = None, *,
+                     trust_names: bool = False) -> LandmarkSet:
     """Detect landmarks, axes and frames on every recognised bone.
 
     Parameters
@@ -51,6 +84,10 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
         `Surface`.
     progress : callable, optional
         Called with each bone name when it is done.
+    trust_names : bool
+        Use a bone whose shape says it is another bone or the other side
+        (`name_problems`) under its name, flagged; by default such a set is
+        refused.
 
     Returns
     -------
@@ -62,7 +99,8 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
     Raises
     ------
     InputError
-        If no recognised bone is given.
+        If no recognised bone is given, or (unless `trust_names`) a bone's
+        shape contradicts its name or side.
     """
     surf: dict[str, Surface] = {}
     sampling_notes: dict[str, str] = {}
@@ -166,6 +204,8 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
             run(oname, lambda s=s, oname=oname: detect_toes(surf[oname], oname, ls.bones.get(f"calcn_{s}")))
     for s in ("r", "l"):
         _tibia_isb(ls, s)
+    if not trust_names:
+        _refuse_names(ls, bones)
     return ls
 
 
