@@ -329,3 +329,18 @@ def test_ragged_ground_reaction_file_refused(shared_data, tmp_path):
     (tmp_path / "grf.mot").write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError, match=r"line \d+: 17 values for 19 column labels"):
         read_external_loads(d / "subject01_walk1_grf.xml", tmp_path / "grf.mot")
+
+
+def test_excluded_intervals_are_nan_and_noted(trial):
+    from kinematics.inverse_dynamics import lab_to_ground, trial_inverse_dynamics
+
+    model, tab, loads = trial
+    r = trial_inverse_dynamics(model, tab.time, tab.select(model.coordinate_names), loads, start=0.6, end=1.0,
+                               exclude=[(0.7, 0.8, "plate 2: two feet")])
+    bad = (r.time >= 0.7 - 1e-9) & (r.time <= 0.8 + 1e-9)
+    assert bad.sum() == 7 and np.isnan(r.tau[bad]).all() and np.isfinite(r.tau[~bad]).all()
+    assert any("two feet" in n and "not computed" in n for n in r.notes)
+    # C3D lab (Z up) to gait2392's ground (Y up): up -> up, forward kept, lab left -> -Z (OpenSim's right is +Z)
+    R = lab_to_ground(model)
+    assert np.allclose(R @ [0, 0, 1], [0, 1, 0]) and np.allclose(R @ [1, 0, 0], [1, 0, 0])
+    assert np.allclose(R @ [0, 1, 0], [0, 0, -1]) and np.isclose(np.linalg.det(R), 1.0)
