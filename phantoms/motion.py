@@ -437,7 +437,14 @@ def _pose_columns(poses: dict) -> tuple[list[str], np.ndarray]:
     return names, np.column_stack(cols)
 
 
-def write_trials(out_dir, ph, seed: int = 0, *, progress=None, **kw) -> dict:
+def _lab_rotation(lab) -> np.ndarray:
+    """Rotation from the phantom lab (X forward, Y left, Z up) to `lab` (a `phantoms.lab.Lab`)."""
+    to_model = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])   # (fwd, left, up) -> (fwd, up, right)
+    return lab.lab_from_model @ to_model
+
+
+def write_trials(out_dir, ph, seed: int = 0, *, progress=None, lab=None, static_name: str = "static",
+                 trial_format: str = "c3d", **kw) -> dict:
     """Write the motion phantom of `ph` into `out_dir` and return the entries for ``truth.json``.
 
     Files (lab frame: X forward, Y left, Z up):
@@ -462,7 +469,12 @@ def write_trials(out_dir, ph, seed: int = 0, *, progress=None, **kw) -> dict:
     ph : phantoms.anatomy.Phantom with both legs
     seed : int, seeds the motion, STA, noise and knee laws
     progress : callable(str) or None, called once per trial written
-    **kw : passed to `make_trials` (rate, gait_trials, crouch_angles, sta, noise_sd, gaps, ...)
+    lab : `phantoms.lab.Lab` or None: write every lab-frame file in that lab's axes (e.g. Y up, walking
+        -x) instead of X forward, Y left, Z up
+    static_name : file stem of the static trial (``Static`` as some labs write it)
+    trial_format : ``c3d``, ``trc`` or ``both``
+    **kw : passed to `make_trials` (rate, gait_trials, crouch_angles, sta, noise_sd, gaps, ...;
+        ``functional_ranges=()`` writes no functional trial)
 
     Returns
     -------
@@ -474,38 +486,59 @@ def write_trials(out_dir, ph, seed: int = 0, *, progress=None, **kw) -> dict:
     from kinematics.storage import write_mot, write_sto, write_trc
 
     out = Path(out_dir)
+    if trial_format not in ("c3d", "trc", "both"):
+        from kinematics.errors import InputError
+
+        raise InputError("--format", f"{trial_format!r} is not one of c3d, trc, both")
     sk, trials, stm = make_trials(ph, seed, **kw)
+    Rl = np.eye(3) if lab is None else _lab_rotation(lab)
+    rot = lambda x: x @ Rl.T  # noqa: E731
     truth = inside(out, "truth")
     truth.mkdir(parents=True, exist_ok=True)
     coords = list(sk.coordinate_names)
-    rot = [c.name for c in sk.model.coordinates if c.kind == "rotational"]
+    rotational = [c.name for c in sk.model.coordinates if c.kind == "rotational"]
+    frame_text = "X forward, Y left, Z up" if lab is None else \
+        f"{lab.name}: forward {lab.forward.tolist()}, up {lab.up.tolist()}, right {lab.lab_from_model[:, 2].tolist()}"
     centre_names = {"hip_r": "RHJC", "hip_l": "LHJC", "knee_r": "RKJC", "knee_l": "LKJC", "ankle_r": "RAJC", "ankle_l": "LAJC"}
     listing = []
     for tr in trials:
-        write_c3d(inside(out, f"{tr.name}.c3d"), tr.markers)
+        stem = static_name if tr.kind == "static" else tr.name
+        mk = MarkerTrial(tr.markers.names, rot(tr.markers.positions), tr.markers.rate, tr.time,
+                         f"{stem}.c3d", tr.markers.extra)
+        if trial_format in ("c3d", "both"):
+            write_c3d(inside(out, f"{stem}.c3d"), mk)
+        if trial_format in ("trc", "both"):
+            write_trc(inside(out, f"{stem}.trc"), mk)
         st = sk.state(tr.q)
-        write_mot(inside(truth, f"{tr.name}.mot"), coords, tr.time, tr.q, rotational=rot)
+        write_mot(inside(truth, f"{tr.name}.mot"), coords, tr.time, tr.q, rotational=rotational)
         ang = sk.angles(st)
         vals = np.column_stack([ang[f"{j}_{s}"][:, k] for s in SIDES for j in ("hip", "knee", "ankle") for k in range(3)])
         write_mot(inside(truth, f"{tr.name}_angles.mot"), ANGLE_COLUMNS, tr.time, vals, rotational=ANGLE_COLUMNS,
                   name="PluginGaitAngles")
         c = sk.centres_lab(st)
         cn = list(centre_names.values())
-        ct = MarkerTrial(tuple(cn), np.stack([c[k] for k in centre_names], axis=1), tr.markers.rate, tr.time,
+        ct = MarkerTrial(tuple(cn), rot(np.stack([c[k] for k in centre_names], axis=1)), tr.markers.rate, tr.time,
                          f"{tr.name}_centres.trc")
         write_trc(inside(truth, f"{tr.name}_centres.trc"), ct)
         write_trc(inside(truth, f"{tr.name}_markers.trc"),
-                  MarkerTrial(tr.markers.names, tr.clean, tr.markers.rate, tr.time, f"{tr.name}_markers.trc"))
-        pn, pv = _pose_columns({k: v for k, v in sk.segment_poses(st).items()})
+                  MarkerTrial(tr.markers.names, rot(tr.clean), tr.markers.rate, tr.time, f"{tr.name}_markers.trc"))
+        from kinematics.pig import SegmentPose
+
+        poses = {k: SegmentPose(rot(v.origin), np.einsum("ij,fjk->fik", Rl, v.axes))
+                 for k, v in sk.segment_poses(st).items()}
+        pn, pv = _pose_columns(poses)
         write_sto(inside(truth, f"{tr.name}_poses.sto"), pn, tr.time, pv,
-                  header_extra=["frame=lab (X forward, Y left, Z up); origins in m; <seg>_<a>axis_<c> = component c of unit axis a"],
+                  header_extra=[f"frame=lab ({frame_text}); origins in m; <seg>_<a>axis_<c> = component c of unit axis a"],
                   name="SegmentPoses")
-        listing.append({"name": tr.name, "kind": tr.kind, "frames": int(tr.q.shape[0]), **tr.meta})
+        listing.append({"name": tr.name, "file": stem, "kind": tr.kind, "frames": int(tr.q.shape[0]), **tr.meta})
         if progress is not None:
             progress(tr.name)
     write_text(inside(out, "subject.json"), sk.subject.to_json() + "\n")
     motion = {
-        "units": "m, rad", "lab_frame": "X forward, Y left, Z up; lab = LAB_FROM_BODY @ body (phantoms.skeleton)",
+        "units": "m, rad", "lab_frame": frame_text + ("; lab = LAB_FROM_BODY @ body (phantoms.skeleton)" if lab is None
+                                                      else "; lab = R @ (phantom lab: X forward, Y left, Z up)"),
+        "lab": None if lab is None else {**lab.to_json(), "lab_from_phantom_lab": Rl.tolist()},
+        "static_file": static_name, "format": trial_format,
         "rate_hz": float(trials[0].markers.rate), "trials": listing,
         "markers": list(trials[0].markers.names),
         "noise_sd_m": float(kw.get("noise_sd", 0.0005)),

@@ -88,10 +88,23 @@ def phantom(
                       static_frames=static_frames, functional=functional, fibula_mesh=fibula_mesh, sta=sta,
                       marker_noise=marker_noise, motion=motion)
         return
-    if marker_set.strip().lower() != "pig" or lab != "z-up" or walk != "+x":
-        raise InputError("--marker-set" if marker_set.strip().lower() != "pig" else "--lab",
-                         "the analytic phantom has the Plug-in-Gait set in a z-up lab walking +x: "
-                         "use --anatomy/--reference for other marker sets and labs")
+    if marker_set.strip().lower() != "pig":
+        raise InputError("--marker-set", "the analytic phantom carries the Plug-in-Gait set: use "
+                                         "--anatomy/--reference for other marker sets")
+    from phantoms.lab import make_lab
+
+    lab_ = make_lab(lab, walk)
+    if not (1 <= static_frames <= 100000):
+        raise InputError("--static-frames", f"{static_frames} is outside 1-100000")
+    trials = {"lab": None if (lab_.name == "z-up" and walk == "+x") else lab_, "static_name": static_name,
+              "trial_format": trial_format, "static_duration": static_frames / 100.0,
+              "sta": sta, "noise_sd": marker_noise / 1000.0}
+    if not functional:
+        trials["functional_ranges"] = ()
+    if trial_format not in ("c3d", "trc", "both"):
+        raise InputError("--format", f"{trial_format!r} is not one of c3d, trc, both")
+    if not static_name or any(c in static_name for c in "/\\."):
+        raise InputError("--static-name", f"{static_name!r} is not a file stem")
     ph = make_phantom(seed=seed, side=side_key, stature=stature, placement=placement)
     subset = None
     if bones.strip():
@@ -112,7 +125,7 @@ def phantom(
 
         with replaced_dir(out) as stage:
             write_subject(stage, ph, voxel=tuple(v / 1000.0 for v in voxel), noise=level, seed=seed,
-                          bones=subset, motion=motion, progress=report, physes=growth_plates / 1000.0)
+                          bones=subset, motion=motion, progress=report, physes=growth_plates / 1000.0, trials=trials)
     typer.echo(f"wrote phantom (seed {seed}, {len(subset or ph.bone_names)} bones, voxel {list(voxel)} mm, noise {level}) to {out}")
 
 
