@@ -11,10 +11,19 @@ marker positions; `read_c3d` leaves them out of the `MarkerTrial` and
 `read_c3d_outputs` returns them converted to SI (radians, N, N m, W, m).
 Segment axis points written by Plug-in-Gait (``PELO``, ``RFEO``...) are plain
 points in length units and are read as markers.
+
+A file that cannot be read correctly is refused (`InputError`) rather than
+read in part: a frame count that disagrees with the header (a truncated
+file, a header saying 0 frames), a marker label given twice, labels of
+several Vicon subjects (``Name:RKNE``) unless one is chosen, a sample marked
+valid that is not finite, or a coordinate beyond `MAX_COORDINATE_M` from the
+lab origin (no lab is that large; a unit slip such as mm data declared in m
+lands there).
 """
 from __future__ import annotations
 
 import os
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +33,13 @@ from .atomic import atomic_path
 from .errors import InputError
 from .markers import MarkerTrial
 
-__all__ = ["read_c3d", "read_c3d_outputs", "write_c3d", "fill_gaps", "C3DOutputs", "Gap", "GapReport"]
+__all__ = ["read_c3d", "read_c3d_outputs", "write_c3d", "fill_gaps", "C3DOutputs", "Gap", "GapReport",
+           "MAX_COORDINATE_M"]
+
+#: largest plausible |coordinate| of a marker, metres (a gait lab is ~20 m across)
+MAX_COORDINATE_M = 100.0
+#: largest plausible POINT:RATE, Hz
+MAX_RATE_HZ = 100_000.0
 
 _LENGTH = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "meters": 1.0, "metres": 1.0, "millimeters": 1e-3, "millimetres": 1e-3}
 # Output groups written by Nexus and the factor converting their stated unit to SI.
@@ -50,10 +65,181 @@ def _open(path) -> "object":
     p = Path(path)
     if not p.is_file():
         raise InputError(path, "C3D file not found")
+    expected = _header_frames(p)
+    _check_parameter_section(p)
+    _survives_ezc3d(p)
     try:
-        return ezc3d.c3d(os.fspath(p))
+        c3d = ezc3d.c3d(os.fspath(p))
     except Exception as exc:  # ezc3d raises bare RuntimeError/IOError for corrupt files
-        raise InputError(path, f"not a readable C3D file ({exc})") from None
+        raise InputError(path, f"not a readable C3D file ({' '.join(str(exc).split())})") from None
+    n = int(np.asarray(c3d["data"]["points"]).shape[-1]) if np.asarray(c3d["data"]["points"]).ndim == 3 else 0
+    if expected is not None and n != expected:
+        raise InputError(path, f"the file holds {n} frames but its header says {expected} (truncated or corrupt file)")
+    return c3d
+
+
+#: longest a C3D file may take to read (a corrupt one can make ezc3d allocate or loop for ever)
+READ_TIMEOUT_S = 60.0
+
+
+def _survives_ezc3d(p: Path) -> None:
+    """Refuse a file that crashes ezc3d: it is first read in a forked child process.
+
+    ezc3d (C++) dereferences what a corrupt parameter section points to and
+    can take the whole process down with a segmentation fault (found by
+    tests/test_fuzz_readers.py); the child costs one fork and one extra parse
+    (a few ms for a trial).  Without ``os.fork`` (Windows) the file is read directly.
+    """
+    import signal
+    import time
+
+    import ezc3d
+
+    if not hasattr(os, "fork"):  # pragma: no cover
+        return
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child: parse, report by exit code (and the error text), never return into the caller's code
+        code = 1
+        try:
+            os.close(r)
+            import faulthandler
+
+            faulthandler.disable()  # a crash here is the expected, reported outcome: no dump on stderr
+            ezc3d.c3d(os.fspath(p))
+            code = 0
+        except BaseException as exc:
+            code = 3
+            try:
+                os.write(w, " ".join(str(exc).split())[:300].encode("utf-8", "replace"))
+            except BaseException:
+                pass
+        finally:
+            os._exit(code)
+    os.close(w)
+    deadline = time.monotonic() + READ_TIMEOUT_S
+    try:
+        while True:
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if done:
+                break
+            if time.monotonic() > deadline:
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+                raise InputError(p, f"reading took over {READ_TIMEOUT_S:g} s: corrupt C3D file")
+            time.sleep(0.002)
+        msg = os.read(r, 400).decode("utf-8", "replace")
+    finally:
+        os.close(r)
+    if os.WIFEXITED(status) and os.WEXITSTATUS(status) == 3:
+        raise InputError(p, f"not a readable C3D file ({msg or 'ezc3d refused it'})")
+    if os.WIFSIGNALED(status):
+        try:
+            name = signal.Signals(os.WTERMSIG(status)).name
+        except ValueError:
+            name = f"signal {os.WTERMSIG(status)}"
+        raise InputError(p, f"corrupt C3D file: the C3D reader (ezc3d) crashed on it ({name})")
+
+
+def _check_parameter_section(p: Path) -> None:
+    """Walk the parameter records (C3D spec) and refuse a section whose records leave it or are malformed.
+
+    Each record: name length (int8, 0 ends), group/parameter id (int8), name,
+    offset to the next record (int16, 0 ends), then for a parameter its type
+    (-1 char, 1 byte, 2 int16, 4 float), dimensions and data, and a
+    description.  ezc3d follows such garbage for minutes or into a crash.
+    """
+    try:
+        with open(p, "rb") as f:
+            head = f.read(512)
+            if len(head) < 512 or head[1] != 0x50 or head[0] < 2:
+                return
+            start = (head[0] - 1) * 512
+            f.seek(start)
+            sec = f.read(4)
+            if len(sec) < 4:
+                return
+            n_blocks = sec[2]
+            sec += f.read(max(n_blocks, 1) * 512 - 4)
+    except OSError:
+        return  # reported by the reader
+    end = ">" if sec[3] == 86 else "<"
+    if n_blocks == 0:
+        raise InputError(p, "corrupt C3D parameter section (0 blocks)")
+    if len(sec) < n_blocks * 512:
+        raise InputError(p, f"truncated C3D file: the parameter section of {n_blocks} blocks is cut short")
+    i, n_rec, groups, params = 4, 0, set(), []
+    while i + 2 <= len(sec):
+        nchar, ident = struct.unpack("bb", sec[i:i + 2])
+        if nchar == 0:
+            break
+        name_end = i + 2 + abs(nchar)
+        if name_end + 2 > len(sec):
+            raise InputError(p, f"corrupt C3D parameter section: record {n_rec + 1} runs past its end")
+        (offset,) = struct.unpack(end + "h", sec[name_end:name_end + 2])
+        body = name_end + 2
+        if ident < 0:
+            groups.add(-ident)
+            need = 1
+        else:
+            if body + 2 > len(sec):
+                raise InputError(p, f"corrupt C3D parameter section: record {n_rec + 1} runs past its end")
+            ptype, ndims = struct.unpack("bB", sec[body:body + 2])
+            if ptype not in (-1, 1, 2, 4) or ndims > 7:
+                raise InputError(p, f"corrupt C3D parameter section: record {n_rec + 1} has type {ptype}, "
+                                    f"{ndims} dimensions")
+            dims = sec[body + 2:body + 2 + ndims]
+            size = abs(ptype) * int(np.prod([d for d in dims], dtype=np.int64)) if ndims else abs(ptype)
+            need = 2 + ndims + size + 1
+            params.append(ident)
+        if body + need > len(sec):
+            raise InputError(p, f"corrupt C3D parameter section: record {n_rec + 1} runs past its end")
+        n_rec += 1
+        if offset == 0:
+            break
+        nxt = name_end + offset
+        if offset < 0 or nxt < body + need - 1 or nxt > len(sec):
+            raise InputError(p, f"corrupt C3D parameter section: record {n_rec} points outside the section")
+        i = nxt
+    orphans = sorted(set(params) - groups)
+    if orphans:
+        raise InputError(p, f"corrupt C3D parameter section: parameters of undefined group(s) {orphans[:5]}")
+
+
+def _header_frames(p: Path) -> int | None:
+    """Frame count the C3D header states (last - first + 1), checked against the file size.
+
+    ezc3d quietly reads what a truncated file still holds (and rewrites its
+    own header to match), so the 512-byte header is read here first.  None
+    when the header cannot say (over 65535 frames: the 16-bit field saturates).
+    """
+    try:
+        with open(p, "rb") as f:
+            head = f.read(512)
+            if len(head) < 512 or head[1] != 0x50 or head[0] < 2:
+                return None  # ezc3d gives the error for what is not a C3D file
+            f.seek((head[0] - 1) * 512)
+            ph = f.read(4)
+        size = p.stat().st_size
+    except OSError as exc:
+        raise InputError(p, f"cannot read ({exc.strerror or exc})") from None
+    if len(ph) < 4:
+        raise InputError(p, "truncated C3D file: the parameter section is missing")
+    end = ">" if ph[3] == 86 else "<"  # processor type 84 Intel, 85 DEC (little-endian), 86 MIPS (big-endian)
+    n_points, n_analog, first, last = struct.unpack(end + "4H", head[2:10])
+    scale = struct.unpack(end + "f", head[12:16])[0] if ph[3] != 85 else -1.0
+    data_start = struct.unpack(end + "H", head[16:18])[0]
+    if last == 65535:
+        return None
+    n = last - first + 1
+    if n <= 0:
+        raise InputError(p, f"the header says {max(n, 0)} frames (first frame {first}, last frame {last})")
+    word = 4 if scale < 0 else 2
+    need = (data_start - 1) * 512 + n * (4 * n_points + n_analog) * word
+    if data_start >= 2 and size < need:
+        have = max(size - (data_start - 1) * 512, 0) // max((4 * n_points + n_analog) * word, 1)
+        raise InputError(p, f"the file ends after {have} of the {n} frames its header states (truncated file)")
+    return n
 
 
 def _labels(c3d) -> list[str]:
@@ -83,15 +269,27 @@ def _positions(c3d, path) -> tuple[np.ndarray, float]:
     pts = np.asarray(c3d["data"]["points"], dtype=float)[:3]  # (3, M, F)
     res = np.asarray(c3d["data"]["meta_points"]["residuals"], dtype=float)[0]  # (M, F)
     pos = np.transpose(pts, (2, 1, 0)).copy()  # (F, M, 3)
-    invalid = (res.T < 0) | np.all(pos == 0.0, axis=2) | ~np.all(np.isfinite(pos), axis=2)
+    invalid = (res.T < 0) | np.all(pos == 0.0, axis=2)
     pos[invalid] = np.nan
-    rate = float(np.ravel(_param(c3d["parameters"]["POINT"], "RATE", [0.0]))[0])
-    if not rate > 0:
-        raise InputError(path, "POINT:RATE is missing or not positive")
+    bad = ~invalid & ~np.all(np.isfinite(pos), axis=2)
+    if bad.any():
+        f, m = (int(v[0]) for v in np.nonzero(bad))
+        raise InputError(path, f"{int(bad.sum())} sample(s) marked valid are not finite (first: point {m + 1}, "
+                               f"frame {f + 1}): corrupt data")
+    try:
+        rate = float(np.ravel(_param(c3d["parameters"]["POINT"], "RATE", [0.0]))[0])
+    except (TypeError, ValueError, IndexError):
+        rate = float("nan")
+    if not (0 < rate <= MAX_RATE_HZ):
+        raise InputError(path, f"POINT:RATE {rate:g} Hz is missing or outside (0, {MAX_RATE_HZ:g}] Hz")
     return pos, rate
 
 
-def read_c3d(path: str | os.PathLike, *, keep_unlabelled: bool = False) -> MarkerTrial:
+def _corrupt_parameters(path, exc: Exception) -> InputError:
+    return InputError(path, f"corrupt C3D parameters ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})")
+
+
+def read_c3d(path: str | os.PathLike, *, keep_unlabelled: bool = False, subject: str | None = None) -> MarkerTrial:
     """Read the marker trajectories of a C3D file.
 
     Parameters
@@ -100,6 +298,9 @@ def read_c3d(path: str | os.PathLike, *, keep_unlabelled: bool = False) -> Marke
     keep_unlabelled : bool
         Keep points whose label starts with ``*`` (Nexus' unlabelled
         trajectories); dropped by default.
+    subject : str, optional
+        The Vicon subject whose markers to read when labels carry several
+        subject prefixes (``Name:RKNE``); required then.
 
     Returns
     -------
@@ -111,9 +312,21 @@ def read_c3d(path: str | os.PathLike, *, keep_unlabelled: bool = False) -> Marke
     Raises
     ------
     InputError
-        Unreadable file, unknown length unit, no markers.
+        Unreadable or truncated file, frame count disagreeing with the header,
+        unknown length unit, no markers, a duplicated label, several subjects
+        without `subject`, non-finite valid samples, coordinates beyond
+        `MAX_COORDINATE_M`.
     """
     c3d = _open(path)
+    try:
+        return _trial_from_c3d(c3d, path, keep_unlabelled, subject)
+    except InputError:
+        raise
+    except (IndexError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise _corrupt_parameters(path, exc) from None
+
+
+def _trial_from_c3d(c3d, path, keep_unlabelled: bool, subject: str | None) -> MarkerTrial:
     point = c3d["parameters"]["POINT"]
     unit = str(np.ravel(_param(point, "UNITS", ["mm"]))[0]).strip()
     if unit.lower() not in _LENGTH:
@@ -123,24 +336,46 @@ def read_c3d(path: str | os.PathLike, *, keep_unlabelled: bool = False) -> Marke
     outputs = _output_names(point)
     pos, rate = _positions(c3d, path)
     # Nexus prefixes labels with "Subject:" when several subjects share a file.
-    names, keep, subject = [], [], None
+    cand = []
     for i, lab in enumerate(labels):
         if lab in outputs or lab.split(":")[-1] in outputs:
             continue
         if lab.startswith("*") and not keep_unlabelled:
             continue
-        if ":" in lab:
-            subject, lab = lab.split(":", 1)
-        if not lab or lab in names:
-            continue
-        names.append(lab)
+        prefix, _, name = lab.rpartition(":")
+        if name:
+            cand.append((i, prefix or None, name))
+    prefixes = sorted({p for _, p, _ in cand if p})
+    if subject is not None:
+        if subject not in prefixes:
+            raise InputError(path, f"no markers of subject {subject!r} (subjects in the file: "
+                                   f"{', '.join(prefixes) or 'none named'})")
+        cand = [c for c in cand if c[1] == subject]
+    elif len(prefixes) > 1:
+        raise InputError(path, f"markers of {len(prefixes)} subjects ({', '.join(prefixes)}): choose one "
+                               "(--subject-name / read_c3d(subject=...))")
+    names, keep, seen = [], [], {}
+    for i, prefix, name in cand:
+        if name in seen:
+            raise InputError(path, f"marker label {name!r} is given twice (points {seen[name] + 1} and {i + 1}): "
+                                   "which trajectory is the marker is unknown")
+        seen[name] = i
+        names.append(name)
         keep.append(i)
     if not names:
         raise InputError(path, "no marker trajectories in the file")
+    subject = subject if subject is not None else (prefixes[0] if prefixes else None)
     first = int(np.ravel(c3d["header"]["points"].get("first_frame", 0))[0])
     time = (np.arange(pos.shape[0]) + first) / rate
     extra = {"subject": subject, "first_frame": first, "units_in_file": unit}
-    return MarkerTrial(tuple(names), pos[:, keep] * scale, rate, time, os.fspath(path), extra)
+    xyz = pos[:, keep] * scale
+    with np.errstate(invalid="ignore"):
+        far = np.abs(xyz) > MAX_COORDINATE_M
+    if far.any():
+        f, m, _ = (int(v[0]) for v in np.nonzero(far))
+        raise InputError(path, f"marker {names[m]} at frame {f + 1} is {float(np.nanmax(np.abs(xyz[f, m]))):.3g} m from "
+                               f"the lab origin (bound {MAX_COORDINATE_M:g} m): corrupt data or wrong POINT:UNITS")
+    return MarkerTrial(tuple(names), xyz, rate, time, os.fspath(path), extra)
 
 
 @dataclass(frozen=True)
@@ -176,6 +411,15 @@ def read_c3d_outputs(path: str | os.PathLike) -> C3DOutputs:
     parameters are honoured and an unknown unit is an `InputError`.
     """
     c3d = _open(path)
+    try:
+        return _outputs_from_c3d(c3d, path)
+    except InputError:
+        raise
+    except (IndexError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise _corrupt_parameters(path, exc) from None
+
+
+def _outputs_from_c3d(c3d, path) -> C3DOutputs:
     point = c3d["parameters"]["POINT"]
     labels = _labels(c3d)
     groups = _output_names(point)

@@ -18,6 +18,11 @@ MOT / STO
     are rotational; the model does), translations are always metres.  Without
     an ``inDegrees`` key the values are taken as SI (OpenSim's own default).
 
+Readers refuse what they cannot read correctly: a TRC coordinate beyond
+`MAX_COORDINATE_M` (after unit conversion) or infinite, a MOT/STO value beyond
+`MAX_TABLE_VALUE` or infinite (an empty field or ``NaN`` is a gap), a data
+rate that is not a positive number below 100 kHz.
+
 Inside the project everything is SI (metres, radians, seconds): readers convert
 at this boundary, writers convert back to what OpenSim expects and state the
 units in the header.  Every write is atomic (`kinematics.atomic.atomic_path`).
@@ -48,6 +53,12 @@ __all__ = [
     "write_sto",
     "guess_rotational",
 ]
+
+#: largest plausible |coordinate| of a marker, metres (a gait lab is ~20 m across; mm read as m lands beyond)
+MAX_COORDINATE_M = 100.0
+#: largest plausible |value| in a MOT/STO table (degrees, m, N, N m, W of human movement are far below)
+MAX_TABLE_VALUE = 1e7
+_MAX_RATE_HZ = 100_000.0
 
 #: Length units a TRC header may declare, as metres per unit.
 TRC_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
@@ -133,8 +144,8 @@ def read_trc(path: str | os.PathLike) -> MarkerTrial:
         n_markers_hdr = int(float(header["NumMarkers"]))
     except ValueError:
         raise InputError(path, "TRC header DataRate/NumFrames/NumMarkers are not numbers") from None
-    if not (rate > 0 and math.isfinite(rate)):
-        raise InputError(path, f"TRC DataRate {header['DataRate']!r} must be a positive number")
+    if not (0 < rate <= _MAX_RATE_HZ):
+        raise InputError(path, f"TRC DataRate {header['DataRate']!r} must be a positive number up to {_MAX_RATE_HZ:g} Hz")
 
     label_fields = lines[3].split("\t")
     if len(label_fields) < 2 or label_fields[0].strip() != "Frame#" or label_fields[1].strip().lower() != "time":
@@ -147,7 +158,7 @@ def read_trc(path: str | os.PathLike) -> MarkerTrial:
         raise InputError(path, f"duplicate marker names {dup}")
     n_cols = 2 + 3 * len(names)
 
-    frames, rows = [], []
+    frames, rows, line_nos = [], [], []
     for i in range(5, len(lines)):
         line = lines[i]
         if not line.strip():
@@ -164,6 +175,7 @@ def read_trc(path: str | os.PathLike) -> MarkerTrial:
         row = [_to_float(t, path, i + 1, "value") for t in toks[1:]]
         frames.append(frame)
         rows.append(row)
+        line_nos.append(i + 1)
     if not rows:
         raise InputError(path, "TRC file has no data rows")
     data = np.asarray(rows, dtype=float)
@@ -176,6 +188,13 @@ def read_trc(path: str | os.PathLike) -> MarkerTrial:
         k = int(np.argmax(np.diff(time) <= 0))
         raise InputError(path, f"TRC time does not increase at frame {k + 2} ({time[k]} -> {time[k + 1]} s)")
     positions = data[:, 1:].reshape(len(rows), len(names), 3) * scale
+    with np.errstate(invalid="ignore"):
+        far = np.abs(positions) > MAX_COORDINATE_M
+    if far.any():
+        f, m, _ = (int(v[0]) for v in np.nonzero(far))
+        raise InputError(path, f"line {line_nos[f]}: marker {names[m]} is "
+                               f"{float(np.nanmax(np.abs(positions[f, m]))):.3g} m from the lab origin (bound "
+                               f"{MAX_COORDINATE_M:g} m): corrupt value or wrong Units")
     # A gap is a whole missing marker: a partially empty triplet is also a gap.
     partial = np.isnan(positions).any(axis=2)
     positions[partial] = np.nan
@@ -383,6 +402,12 @@ def _read_table(path: str | os.PathLike, kind: str) -> Table:
     time = data[:, 0]
     if not np.all(np.isfinite(time)):
         raise InputError(path, "the time column has non-finite entries")
+    with np.errstate(invalid="ignore"):
+        far = np.abs(data) > MAX_TABLE_VALUE
+    if far.any():
+        r, c = (int(v[0]) for v in np.nonzero(far))
+        raise InputError(path, f"row {r + 1}, column {labels[c]!r}: value {data[r, c]:.3g} beyond the bound "
+                               f"{MAX_TABLE_VALUE:g} (corrupt or not a table of human movement)")
     if len(time) > 1 and np.any(np.diff(time) < 0):
         j = int(np.argmax(np.diff(time) < 0))
         raise InputError(path, f"time decreases at row {j + 2} ({time[j]} -> {time[j + 1]})")

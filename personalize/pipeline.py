@@ -218,36 +218,136 @@ def find_inputs(subject_dir: str | Path) -> SubjectInputs:
         raise InputError(folder / "subject.json", "missing: height, mass and Plug-in-Gait measurements are required")
     subject = read_subject(folder / "subject.json")
     static = read_c3d(folder / "static.c3d")
-    static.require(list(_PELVIS))
     names = sorted(p.name for p in folder.glob("*.c3d") if p.name != "static.c3d")
     if not names:
         raise InputError(folder, "no motion trial: at least one C3D besides static.c3d is required")
-    trials = {}
-    ref = _pelvis_distances(static)
-    for n in names:
-        tr = read_c3d(folder / n)
-        missing = [m for m in _PELVIS if m not in tr.names]
-        if missing:
-            raise InputError(folder / n, f"pelvis markers {', '.join(missing)} missing")
-        s1, s2 = static.extra.get("subject"), tr.extra.get("subject")
-        if s1 and s2 and s1 != s2:
-            raise InputError(folder / n, f"labelled for subject {s2!r} but static.c3d is subject {s1!r}")
-        d = _pelvis_distances(tr)
-        diff = np.nanmax(np.abs(d - ref))
-        if not np.isfinite(diff) or diff > max(0.015, 0.06 * np.nanmin(ref)):
-            raise InputError(folder / n, f"pelvis marker distances differ from static.c3d by {diff * 1e3:.0f} mm "
-                                         "(rigid on one subject): a trial of another subject?")
-        trials[Path(n).stem] = tr
+    trials = {Path(n).stem: read_c3d(folder / n) for n in names}
+    check_same_subject(static, trials.values())
     functional = next((k for k in ("functional_hip",) if k in trials), None)
     if functional is None:
         functional = next((k for k in sorted(trials) if k.startswith("functional")), None)
-    truth = None
-    if (folder / "truth.json").is_file():
-        truth = json.loads((folder / "truth.json").read_text(encoding="utf-8"))
-    marker_sides = [s for s in ("r", "l") if all(s.upper() + m in static.names for m in _REQUIRED)]
+    truth = _read_truth(folder / "truth.json")
+    marker_sides = [s for s in ("r", "l") if all(s.upper() + m in static.names for m in _REQUIRED)
+                    and all(_visible(static, s.upper() + m) for m in _REQUIRED)]
     if not marker_sides:
         raise InputError(folder / "static.c3d", f"no side has all of the markers {', '.join(_REQUIRED)} (R/L prefixed)")
     return SubjectInputs(folder, bones, label_map, static, trials, functional, subject, truth, tuple(marker_sides))
+
+
+def _visible(trial: MarkerTrial, name: str) -> bool:
+    return name in trial.names and bool(np.all(np.isfinite(trial.marker(name)), axis=1).any())
+
+
+def check_same_subject(static: MarkerTrial, trials) -> None:
+    """Refuse trials that cannot be of the static trial's subject.
+
+    The four pelvis markers (RASI, LASI, RPSI, LPSI) sit on one rigid segment:
+    their four distances (inter-ASIS, ASIS-PSIS per side, inter-PSIS),
+    medians over the frames, must agree with the static trial's within
+    ``max(15 mm, 6 % of the shortest)``; a Vicon subject name (label prefix)
+    must be the static's.  The static must show every pelvis marker.
+
+    Raises
+    ------
+    InputError naming the static trial (a pelvis marker never visible) or the trial at fault.
+    """
+    src = static.source
+    missing = [m for m in _PELVIS if m not in static.names]
+    if missing:
+        raise InputError(src, f"missing markers: {', '.join(missing)}")
+    never = [m for m in _PELVIS if not _visible(static, m)]
+    if never:
+        raise InputError(src, f"pelvis marker(s) {', '.join(never)} never visible ({static.n_frames} frames, "
+                              "no valid sample): the static trial cannot place the pelvis")
+    ref = _pelvis_distances(static)
+    if not np.all(np.isfinite(ref)):
+        raise InputError(src, "the pelvis markers are never visible together in one frame")
+    for tr in trials:
+        missing = [m for m in _PELVIS if m not in tr.names]
+        if missing:
+            raise InputError(tr.source, f"pelvis markers {', '.join(missing)} missing")
+        s1, s2 = static.extra.get("subject"), tr.extra.get("subject")
+        if s1 and s2 and s1 != s2:
+            raise InputError(tr.source, f"labelled for subject {s2!r} but the static trial "
+                                        f"{Path(src).name} is subject {s1!r}")
+        d = _pelvis_distances(tr)
+        if not np.all(np.isfinite(d)):
+            raise InputError(tr.source, "the pelvis markers are never visible together in one frame")
+        diff = float(np.max(np.abs(d - ref)))
+        if diff > max(0.015, 0.06 * np.min(ref)):
+            raise InputError(tr.source, f"pelvis marker distances differ from the static trial {Path(src).name} by "
+                                        f"{diff * 1e3:.0f} mm (rigid on one subject): a trial of another subject?")
+
+
+#: a movement trial's 95th-percentile ASIS-ankle marker distance over the leg length: 0.99-1.00 on mocap_pig
+#: (Movement_trial with Test.vsk; the legs straighten at heel strike), refused beyond 1 +- this
+TRIAL_LEG_RATIO_TOL = 0.10
+
+
+def check_trial_legs(subject, trial: MarkerTrial, tol: float = TRIAL_LEG_RATIO_TOL) -> dict:
+    """Refuse a movement trial whose legs cannot be the subject file's (no static trial to compare with).
+
+    r = P95(|ASIS - ANK|) / leg length per side must satisfy |r - 1| <= `tol`
+    (in walking the leg is straight at heel strike, so the 95th percentile is
+    the standing distance).  Returns {side: r}; sides without both markers are skipped.
+    """
+    ratios = {}
+    for side, L in (("R", subject.right_leg_length), ("L", subject.left_leg_length)):
+        if f"{side}ASI" not in trial.names or f"{side}ANK" not in trial.names:
+            continue
+        d = np.linalg.norm(trial.marker(f"{side}ASI") - trial.marker(f"{side}ANK"), axis=1)
+        d = d[np.isfinite(d)]
+        if d.size < 10:
+            continue
+        r = float(np.percentile(d, 95) / L)
+        ratios[side] = r
+        if abs(r - 1.0) > tol:
+            raise InputError(trial.source, f"{side} ASIS-ankle marker distance (95th percentile {np.percentile(d, 95) * 1e3:.0f} mm) "
+                                           f"does not match the {'right' if side == 'R' else 'left'} leg length "
+                                           f"{L * 1e3:.0f} mm of {subject.source or 'the subject file'} (ratio {r:.2f}): "
+                                           "a trial of another subject, or the wrong subject file?")
+    return ratios
+
+
+def _gate_registrations(inputs: SubjectInputs, est) -> None:
+    """Refuse the subject when the pelvis registration says the MRI bones are another person's; note other segments."""
+    from .registration import GATE_P, gate_statistic
+
+    for name, reg in est.registrations.items():
+        chi2, dof, p = gate_statistic(reg)
+        if p >= GATE_P:
+            continue
+        what = (f"{name} registration of the MRI bones to the static markers fails its chi-square gate "
+                f"(chi2 = {chi2:.1f} on {dof} dof, p = {p:.1g} < {GATE_P:g}; rms {reg.rms * 1e3:.1f} mm"
+                + (f"; outliers {', '.join(reg.rejected)}" if reg.rejected else "") + ")")
+        if name == "pelvis":
+            raise InputError(inputs.bones, what + ": the bones and the markers are not of the same person?")
+        est.notes.append(f"low confidence: {what}")
+
+
+def _read_truth(path: Path) -> dict | None:
+    """truth.json of a phantom subject (None when absent); `InputError` when it is not what the phantom writes."""
+    if not path.is_file():
+        return None
+    try:
+        truth = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(path, f"not readable JSON ({' '.join(str(exc).split())})") from None
+    if not isinstance(truth, dict):
+        raise InputError(path, f"holds a JSON {type(truth).__name__}, expected an object")
+    joints = truth.get("joints")
+    if joints is not None:
+        J = joints.get("joints") if isinstance(joints, dict) else None
+        try:
+            ok = isinstance(J, dict) and all(
+                isinstance(v, dict) and np.shape(v.get("origin")) == (3,) and np.shape(v.get("rotation")) == (3, 3)
+                and np.all(np.isfinite(np.asarray(v.get("origin"), float)))
+                and np.all(np.isfinite(np.asarray(v.get("rotation"), float))) for v in J.values())
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise InputError(path, "joints.joints must map each joint to an origin (3) and rotation (3x3)")
+    return truth
 
 
 # --------------------------------------------------------------------------- motion estimates
@@ -1125,7 +1225,7 @@ def _report(path: Path, summary: dict, est: JointEstimates, ik: dict, ls, surfac
 
 # --------------------------------------------------------------------------- main
 def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
-                progress: Callable[[str], None] | None = None, report: bool = True) -> dict:
+                progress: Callable[[str], None] | None = None, report: bool = True, overwrite: bool = False) -> dict:
     """Run the whole pipeline on one subject folder; outputs are staged into `out`.
 
     Parameters
@@ -1135,6 +1235,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
     seed : seeds the point sampling of the surfaces (the run is deterministic)
     progress : callable(str), called at each stage
     report : write report.html
+    overwrite : replace a non-empty `out` whole (else it is refused before any work)
 
     Returns
     -------
@@ -1142,25 +1243,51 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, seed: int = 0,
 
     Raises
     ------
-    InputError : bad subject folder (one line naming the file and the problem); with
-        `report`, ``report.html`` stating the error is still written into `out` (atomically;
-        nothing else is)
+    InputError : bad subject folder or output location (one line naming the file and the
+        problem); with `report`, `out` then holds only ``report.html`` stating the error
+        (unless `out` itself was refused: then it is untouched)
+    FitError : an estimate could not be made (same refusal report)
     """
+    from .outputs import check_output_dir
+
+    check_output_dir(out, inputs=[subject_dir], overwrite=overwrite)
     try:
         return _run_subject(subject_dir, out, seed=seed, progress=progress, report=report)
-    except InputError as exc:
+    except (InputError, FitError) as exc:
+        if report:
+            _refusal_report(Path(out), subject_dir, exc)
+        raise
+    except OSError as exc:
+        # a file-system fault met during the run (disk full, folder made read-only): the same one-line error
+        err = InputError(exc.filename or out, f"{exc.strerror or exc} (file-system fault during the run)")
+        if report:
+            try:
+                _refusal_report(Path(out), subject_dir, err)
+            except OSError:
+                pass
+        raise err from None
+    except Exception as exc:
         if report:
             _refusal_report(Path(out), subject_dir, exc)
         raise
 
 
-def _refusal_report(out: Path, subject_dir, exc: InputError) -> None:
-    """``out/report.html`` of a refused subject: the error, and what a subject folder holds."""
+def _refusal_report(out: Path, subject_dir, exc: BaseException) -> None:
+    """`out` replaced by a folder holding only ``report.html`` of the refused subject: the error, what a subject folder holds."""
+    from .outputs import replaced_dir
+
+    kind = ("Input error" if isinstance(exc, InputError) else "Estimation error" if isinstance(exc, FitError)
+            else "Internal error")
+    text = str(exc) if isinstance(exc, (InputError, FitError)) else f"{type(exc).__name__}: {exc}"
+    with replaced_dir(out) as stage:
+        _refusal_page(stage, subject_dir, kind, text)
+
+
+def _refusal_page(stage: Path, subject_dir, kind: str, text: str) -> None:
     from .report import Section, render_report
 
-    out.mkdir(parents=True, exist_ok=True)
-    render_report(inside(out, "report.html"), f"Personalised model: {Path(subject_dir).name} refused", [
-        Section("Input error", [str(exc), "The subject was refused: no model, kinematics or summary.json was written."]),
+    render_report(inside(stage, "report.html"), f"Personalised model: {Path(subject_dir).name} refused", [
+        Section(kind, [" ".join(text.split()), "The subject was refused: no model, kinematics or summary.json was written."]),
         Section("What a subject folder holds", [
             "labels.nii.gz (+ label_map.json) or bones/; static.c3d; at least one motion trial C3D "
             "(functional_hip*.c3d calibrates the hip centres); subject.json (height, mass, Plug-in-Gait "
@@ -1210,6 +1337,7 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
     skin = pelvis_skin(inputs, surfaces, lm_json, volume)
     del volume
     est = estimate_joints(inputs, surfaces, lm_json, j_json, say, dropped, skin=skin)
+    _gate_registrations(inputs, est)
     static_pos = static_marker_positions(inputs.static)
     say("building the model")
     params = _subject_parameters(inputs, est, static_pos)
@@ -1289,7 +1417,9 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
     summary["mri_hip_cov_scale"] = est.mri_hip_scale
     summary["registration"] = {k: {"rms_mm": r.rms * 1e3, "used": list(r.names), "rejected": list(r.rejected)}
                                for k, r in est.registrations.items()}
-    with staged_dir(out) as stage:
+    from .outputs import replaced_dir
+
+    with replaced_dir(out) as stage:
         write_text(inside(stage, "landmarks.json"), json.dumps(lm_json, indent=1) + "\n")
         write_text(inside(stage, "joints.json"), json.dumps(j_doc, indent=1) + "\n")
         say("writing meshes and model")

@@ -49,7 +49,8 @@ from .errors import InputError
 
 __all__ = [
     "Registration", "SegmentRegistrations", "register_landmarks", "register_segments", "static_marker_positions", "express_in_frame",
-    "SEGMENT_MARKERS", "SEGMENT_BONES", "SKIN_THICKNESS", "MARKER_RADIUS", "skin_prior",
+    "SEGMENT_MARKERS", "SEGMENT_BONES", "SKIN_THICKNESS", "MARKER_RADIUS", "skin_prior", "GATE_P", "gate_statistic",
+    "passes_gate",
 ]
 
 #: soft-tissue thickness (m) and sd of a site absent from the per-site table `kinematics.soft_tissue`
@@ -60,6 +61,10 @@ SKIN_THICKNESS_SD = DEFAULT_TISSUE.sd
 MARKER_RADIUS = 0.007
 #: default sd (m) of marker placement (palpation) on top of the static-trial scatter
 MARKER_PLACEMENT_SD = 0.003
+#: p-value of a registration's full chi-square (`gate_statistic`) below which its bones are taken as another
+#: person's.  Phantom subjects registered to their own bones: p >= 0.96 on every segment (3 seeds); the pelvis
+#: of another phantom: p = 7e-22, 2e-17, 2e-10 (statures apart) but 0.77-0.87 for two subjects of one size.
+GATE_P = 1e-6
 #: angular sd (deg) of an outward normal guessed from internal landmarks (no surface given)
 GUESSED_NORMAL_SD_DEG = 30.0
 #: angular sd (deg) of a normal taken from the bone surface
@@ -282,6 +287,27 @@ class Registration:
             "rotation_sd_deg": self.rotation_sd_deg.tolist(), "translation_sd": self.translation_sd.tolist(),
             "notes": list(self.notes),
         }
+
+
+def gate_statistic(reg: Registration) -> tuple[float, int, float]:
+    """χ² of a registration over every correspondence, outliers included, its dof and p-value.
+
+    χ²_all = Σ_used d_k² + Σ_rejected d_j² on 3 (K_used + K_rejected) - 6 degrees
+    of freedom, d the Mahalanobis distances (a rejected point's from the fit
+    without it).  Outlier rejection alone would hide a wrong subject: with
+    another person's pelvis one of its four landmarks is rejected and the
+    other three fit.
+    """
+    rej = np.asarray(list(reg.rejected.values()), float)
+    chi2 = float(reg.chi2 + np.sum(rej**2))
+    dof = int(reg.dof + 3 * len(rej))
+    p = float(stats.chi2.sf(chi2, dof)) if dof > 0 else 1.0
+    return chi2, dof, p
+
+
+def passes_gate(reg: Registration, p_min: float = GATE_P) -> bool:
+    """Whether the registration's full χ² (`gate_statistic`) is compatible with the declared noise at `p_min`."""
+    return gate_statistic(reg)[2] >= p_min
 
 
 def express_in_frame(point, cov, origin, rotation, origin_cov=None, rotation_cov=None):

@@ -38,8 +38,8 @@ from kinematics.errors import InputError
 __all__ = ["run_markers", "register", "read_trial", "plot_angles"]
 
 
-def read_trial(path: Path):
-    """MarkerTrial from a .c3d (mm in the file) or .trc file."""
+def read_trial(path: Path, subject_name: Optional[str] = None):
+    """MarkerTrial from a .c3d (mm in the file) or .trc file; `subject_name` picks a Vicon subject's labels."""
     from kinematics.c3d import read_c3d
     from kinematics.storage import read_trc
 
@@ -48,7 +48,7 @@ def read_trial(path: Path):
         raise InputError(path, "file not found")
     suffix = p.suffix.lower()
     if suffix == ".c3d":
-        return read_c3d(p)
+        return read_c3d(p, subject=subject_name)
     if suffix == ".trc":
         return read_trc(p)
     raise InputError(path, f"unsupported marker file type {suffix!r} (expected .c3d or .trc)")
@@ -104,7 +104,7 @@ def _gaps(trial, max_gap: float, label: str, notes: list, gap_log: list):
 
 def run_markers(trial: Path, *, method: str, out: Path, subject: Optional[Path] = None, static: Optional[Path] = None,
                 functional: Optional[Path] = None, max_gap: float = 0.1, plot: bool = True,
-                overwrite: bool = False) -> dict:
+                overwrite: bool = False, subject_name: Optional[str] = None) -> dict:
     """Run the command; returns the report dict."""
     from kinematics.atomic import inside, write_text
 
@@ -125,9 +125,23 @@ def run_markers(trial: Path, *, method: str, out: Path, subject: Optional[Path] 
     subj = read_subject(subject)
     notes: list[str] = []
     gap_log: list[dict] = []
-    tr = _gaps(read_trial(trial), max_gap, Path(trial).name, notes, gap_log)
-    st = _gaps(read_trial(static), max_gap, Path(static).name, notes, gap_log) if static is not None else None
-    fu = _gaps(read_trial(functional), max_gap, Path(functional).name, notes, gap_log) if functional is not None else None
+    from ..pipeline import check_same_subject, check_trial_legs
+
+    raw = {k: read_trial(p, subject_name) for k, p in (("trial", trial), ("static", static), ("functional", functional))
+           if p is not None}
+    # every file of one subject: pelvis marker distances against the static (as `run` checks), else the legs
+    # against the subject file (the static itself is checked against it in `reconstruct`)
+    if "static" in raw and all(m in raw["static"].names for m in ("RASI", "LASI", "RPSI", "LPSI")):
+        if all(m in raw["static"].names for m in ("RANK", "LANK")):
+            from kinematics.subject import validate_static
+
+            validate_static(subj, raw["static"])    # the static against the subject file first
+        check_same_subject(raw["static"], [v for k, v in raw.items() if k != "static"])
+    else:
+        check_trial_legs(subj, raw["trial"])
+    tr = _gaps(raw["trial"], max_gap, Path(trial).name, notes, gap_log)
+    st = _gaps(raw["static"], max_gap, Path(static).name, notes, gap_log) if static is not None else None
+    fu = _gaps(raw["functional"], max_gap, Path(functional).name, notes, gap_log) if functional is not None else None
     rec = reconstruct(tr, method, static=st, subject=subj, functional=fu)
     if np.all(~np.isfinite(rec.angle_table())):
         raise InputError(trial, "no frame could be reconstructed (markers missing in every frame?)")
@@ -175,10 +189,11 @@ def register(app: typer.Typer) -> None:
         max_gap: float = typer.Option(0.1, "--max-gap", help="Fill marker gaps up to this many seconds (cubic spline); longer ones stay missing."),
         no_plot: bool = typer.Option(False, "--no-plot", help="Skip angles.png."),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
+        subject_name: Optional[str] = typer.Option(None, "--subject-name", help="Vicon subject whose markers to read when a C3D holds several (Name:RKNE labels)."),
     ) -> None:
         """Joint centres and Plug-in-Gait joint angles of a marker trial (pig or foot-to-hip)."""
         rep = run_markers(trial, method=method, out=out, subject=subject, static=static, functional=functional,
-                          max_gap=max_gap, plot=not no_plot, overwrite=overwrite)
+                          max_gap=max_gap, plot=not no_plot, overwrite=overwrite, subject_name=subject_name)
         for n in rep["notes"]:
             typer.echo(f"note: {n}", err=True)
         typer.echo(f"{method}: {rep['valid_frames']}/{rep['frames']} frames reconstructed; wrote centres.trc, "
