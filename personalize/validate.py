@@ -588,8 +588,8 @@ def draw_realistic_subjects(n: int, seed: int, data_root: str | os.PathLike | No
 
     Factors rotate with the subject index so that any 12 consecutive subjects cover every level:
     anatomy analytic / ICL_MRI / LHDL_CT (real anatomies only when `data_root` holds them); marker sets
-    pig on the analytic anatomy, ior, cast, opensim and pig on the real ones; labs y-up and z-up (the
-    analytic phantom is z-up); tissue child / adult / obese; a functional hip trial in every other
+    pig on the analytic anatomy, ior, cast, opensim and pig on the real ones; labs y-up and z-up (both
+    anatomies); tissue child / adult / obese (the analytic phantom: its own adult prior); a functional hip trial in every other
     subject; a label volume or a mesh folder; ``Static.c3d`` or ``static.c3d``, C3D or TRC trials,
     static trials of 7 to 200 frames.  Continuous draws (voxel size, segmentation and marker noise, STA
     scale, walking direction) from `seed`.
@@ -611,8 +611,10 @@ def draw_realistic_subjects(n: int, seed: int, data_root: str | os.PathLike | No
             r += 1
         anatomy = reals[r % len(reals)] if real else "analytic"
         ms = real_sets[(r // 2) % len(real_sets)] if real else "pig"
-        lab = ("y-up", "z-up")[((r // 2) + (r // 8)) % 2] if real else "z-up"
-        walk = str(rng.choice(["+x", "-x", "+z", "-z"] if lab == "y-up" else ["+x", "-x", "+y", "-y"])) if real else "+x"
+        a = i // 3                            # index among the analytic subjects
+        lab = ("y-up", "z-up")[((r // 2) + (r // 8)) % 2] if real else ("z-up", "y-up")[a % 2]
+        walk = str(rng.choice(["+x", "-x", "+z", "-z"] if lab == "y-up" else ["+x", "-x", "+y", "-y"])) \
+            if (real or lab == "y-up") else "+x"
         out.append(RealisticSpec(
             subject=f"subject_{i + 1:03d}", seed=int(ss.generate_state(1)[0] % (2**31 - 1)), anatomy=anatomy,
             marker_set=ms, lab=lab, walk=walk, tissue=builds[r % 3] if real else "adult",
@@ -653,10 +655,14 @@ def ensure_realistic_subject(subject_dir: str | os.PathLike, progress: Callable[
             from phantoms.imaging import write_phantom
             from phantoms.motion import write_trials
 
+            from phantoms.lab import make_lab
+
             ph = make_phantom(seed=spec.seed)
             write_phantom(stage, ph, voxel=(spec.voxel_mm * 1e-3,) * 3, noise=spec.segmentation_noise,
                           seed=spec.seed, progress=progress, meshes=True)
-            entries = write_trials(stage, ph, spec.seed, progress=progress, sta_scale=spec.sta_scale,
+            lab = None if (spec.lab == "z-up" and spec.walk == "+x") else make_lab(spec.lab, spec.walk)
+            entries = write_trials(stage, ph, spec.seed, progress=progress, sta_scale=spec.sta_scale, lab=lab,
+                                   static_name=spec.static_name, trial_format=spec.trial_format,
                                    noise_sd=spec.marker_noise_m, gait_trials=1, gait_cycles=1.0, crouch_angles=(0,),
                                    crouch_duration=2.0, functional_ranges=(45,) if spec.functional else (),
                                    functional_time_scale=0.5, static_duration=0.5)
