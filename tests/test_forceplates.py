@@ -53,6 +53,50 @@ c.write(out + "/type4.c3d")
 c = load()  # type 4 without a calibration matrix
 c["parameters"]["FORCE_PLATFORM"]["TYPE"]["value"] = np.array([4, 2, 2, 2])
 c.write(out + "/type4_nocal.c3d")
+
+# Plate 1 re-expressed as type 1 (Fx Fy Fz N, CoP x y mm, Tz N mm) and as type 3 (Kistler, 8 channels,
+# ORIGIN a b az0): the same wrench, so the reader must find the same force, CoP and free moment.
+c = load()
+an = np.array(c["data"]["analogs"], float)
+f, m_o = an[0, 0:3].T, an[0, 3:6].T                      # plate frame, N and N mm about the sensor origin
+o = np.array([0.0, 0.0, -41.0])                          # surface centre from the sensor origin (plate Z down)
+Mc = m_o + np.cross(f, o)
+fz = f[:, 2]
+ok = np.abs(fz) > 5.0
+cx = np.where(ok, -Mc[:, 1] / np.where(ok, fz, 1.0), 0.0)
+cy = np.where(ok, Mc[:, 0] / np.where(ok, fz, 1.0), 0.0)
+tz = np.where(ok, Mc[:, 2] - (cx * f[:, 1] - cy * f[:, 0]), 0.0)
+t1 = an.copy()
+t1[0, 3], t1[0, 4], t1[0, 5] = cx, cy, tz
+c["data"]["analogs"] = t1
+units = list(c["parameters"]["ANALOG"]["UNITS"]["value"])
+units[3], units[4], units[5] = "mm", "mm", "Nmm"
+c["parameters"]["ANALOG"]["UNITS"]["value"] = units
+c["parameters"]["FORCE_PLATFORM"]["TYPE"]["value"] = [1, 2, 2, 2]
+c.write(out + "/type1.c3d")
+
+c = load()
+a, b = 120.0, 200.0
+Mz = m_o[:, 2]
+fx12, fx34 = f[:, 0] / 2 - Mz / (2 * b), f[:, 0] / 2 + Mz / (2 * b)
+fy14 = fy23 = f[:, 1] / 2
+A = np.array([[1, 1, 1, 1], [b, b, -b, -b], [-a, a, a, -a], [1, -1, 1, -1]], float)
+fz4 = np.linalg.solve(A, np.vstack([f[:, 2], m_o[:, 0], m_o[:, 1], np.zeros(len(f))]))
+t3 = an.copy()
+t3[0, 0], t3[0, 1], t3[0, 2], t3[0, 3], t3[0, 4], t3[0, 5] = fx12, fx34, fy14, fy23, fz4[0], fz4[1]
+t3[0, 24], t3[0, 25] = fz4[2], fz4[3]
+c["data"]["analogs"] = t3
+units = list(c["parameters"]["ANALOG"]["UNITS"]["value"])
+units[3] = units[4] = units[5] = units[24] = units[25] = "N"
+c["parameters"]["ANALOG"]["UNITS"]["value"] = units
+fp = c["parameters"]["FORCE_PLATFORM"]
+ch = np.array(fp["CHANNEL"]["value"], int)
+fp["CHANNEL"]["value"] = np.vstack([ch, [[25, 1, 1, 1], [26, 1, 1, 1]]])
+org = np.array(fp["ORIGIN"]["value"], float)
+org[:, 0] = [a, b, -41.0]
+fp["ORIGIN"]["value"] = org
+fp["TYPE"]["value"] = [3, 2, 2, 2]
+c.write(out + "/type3.c3d")
 """
 
 
@@ -212,3 +256,17 @@ def test_box_average_is_centred_mean(fa):
     assert np.allclose(y[inner, 0], 3.0 + 2.0 * tk[inner], atol=1e-9)  # a ramp's mean is its centre value
     T = 1 / fp  # the box's transfer function for a sine: sinc(f T)
     assert np.allclose(y[inner, 1], np.sinc(5 * T) * np.sin(2 * np.pi * 5 * tk[inner]), atol=2e-3)
+
+
+@pytest.mark.parametrize("name", ["type1.c3d", "type3.c3d"])
+def test_types_1_and_3_give_the_type2_wrench(trial, modified, name):
+    """Plate 1 rewritten as a type-1 (CoP channels) and a type-3 (Kistler 8-channel) platform."""
+    ref = read_force_plates(trial, at="analog")[0]
+    p = read_force_plates(modified / name, at="analog")[0]
+    assert p.type == int(name[4])
+    scale = np.abs(ref.force).max()
+    assert np.abs(p.force - ref.force).max() < 1e-4 * scale
+    both = np.isfinite(p.cop[:, 0]) & np.isfinite(ref.cop[:, 0]) & (ref.force @ ref.normal > 100.0)
+    assert both.sum() > 600
+    assert np.abs(p.cop[both] - ref.cop[both]).max() < 1e-5  # m (float32 channels)
+    assert np.abs(p.free_moment[both] - ref.free_moment[both]).max() < 1e-3  # N m
