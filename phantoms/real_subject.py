@@ -336,7 +336,7 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     (mm, scanner), trials ``<static_name>.c3d|.trc``, ``gait_NN``, ``functional_hip`` (lab frame, mm),
     ``markers.json`` (`kinematics.marker_sets`), ``subject.json`` (SI), ``truth_model.osim`` (ground = lab,
     the placed markers, ``geometry/<bone>.stl`` in body frames), ``truth.json`` (m) and ``truth/``
-    (``<trial>.mot`` true coordinates, ``<trial>_centres.trc`` true hip/knee/ankle centres,
+    (``<trial>.mot`` true coordinates and knee_flexion_<s>, ``<trial>_centres.trc`` true hip/knee/ankle centres,
     ``<trial>_markers.trc`` artefact-free noise-free markers; lab frame).
 
     Parameters
@@ -422,7 +422,13 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
             write_c3d(inside(out, f"{stem}.c3d"), tr.markers)
         if trial_format in ("trc", "both"):
             write_trc(inside(out, f"{stem}.trc"), tr.markers)
-        write_mot(inside(truth_dir, f"{tr.name}.mot"), coords, tr.time, tr.q, rotational=rot)
+        # the model's coordinates, plus knee_flexion_<s> (flexion positive; not a model coordinate) so that
+        # a pipeline naming knee flexion as Plug-in-Gait does can be compared
+        kf = [f"knee_flexion_{s}" for s in anat.sides]
+        kq = np.column_stack([signs["knee_angle"] * tr.q[:, model.coordinate_index(f"knee_angle_{s}")]
+                              for s in anat.sides])
+        write_mot(inside(truth_dir, f"{tr.name}.mot"), coords + kf, tr.time, np.column_stack([tr.q, kq]),
+                  rotational=rot + kf)
         st = _fk(model, tr.q)
         cen = np.stack([_joint_origin(model, st, j) for j in centre_names], axis=1)
         write_trc(inside(truth_dir, f"{tr.name}_centres.trc"),
