@@ -182,8 +182,10 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
     if t.shape[0] < 6:
         raise InputError("coordinates", "at least 6 frames are needed")
     dt = np.diff(t)
-    if np.any(dt <= 0) or (dt.max() - dt.min()) > 1e-3 * dt.mean():
-        raise InputError("coordinates", "times must be uniformly sampled and increasing")
+    if np.any(dt <= 0) or (dt.max() - dt.min()) > 1e-3 * np.median(dt):
+        j = int(np.argmax(np.abs(dt - np.median(dt))))
+        raise InputError("coordinates", f"times must be uniformly sampled and increasing (step {dt[j]:.4g} s at "
+                                        f"{t[j]:.4f} s, elsewhere {np.median(dt):.4g} s: frames missing?)")
     if not np.all(np.isfinite(q)):
         raise InputError("coordinates", "coordinates contain NaN; the IK left frames unsolved")
     rate = 1.0 / dt.mean()

@@ -363,3 +363,20 @@ def test_excluded_intervals_are_nan_and_noted(trial):
     R = lab_to_ground(model)
     assert np.allclose(R @ [0, 0, 1], [0, 1, 0]) and np.allclose(R @ [1, 0, 0], [1, 0, 0])
     assert np.allclose(R @ [0, 1, 0], [0, 0, -1]) and np.isclose(np.linalg.det(R), 1.0)
+
+
+def test_cli_kinematics_with_missing_frames_refused(shared_data, tmp_path, capsys):
+    from personalize.cli import main
+
+    d = shared_data / GAIT
+    lines = (d / "subject01_walk1_ik.mot").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.strip().lower() == "endheader")
+    del lines[k + 20]
+    gap = tmp_path / "gap.mot"
+    gap.write_text("\n".join(ln.replace("nRows=211", "nRows=210") for ln in lines) + "\n")
+    args = ["dynamics", str(d / "subject01_simbody.osim"), str(gap), "--out", str(tmp_path / "o"), "--quiet",
+            "--loads", str(d / "subject01_walk1_grf.mot"), str(d / "subject01_walk1_grf.xml")]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert str(gap) in err and "uniformly sampled" in err and "0.7833 s" in err
+    assert not (tmp_path / "o").exists()

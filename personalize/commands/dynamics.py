@@ -134,8 +134,13 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
         ext, exclude, contacts = list(tl.loads), tl.exclude, list(tl.contacts)
         notes += list(tl.notes)
         load_cut = None if filter_loads is False else cutoff
-    res = trial_inverse_dynamics(model, tab.time, q, ext, cutoff=cutoff, method=method, load_cutoff=load_cut,
-                                 start=start, end=end, exclude=exclude)
+    try:
+        res = trial_inverse_dynamics(model, tab.time, q, ext, cutoff=cutoff, method=method, load_cutoff=load_cut,
+                                     start=start, end=end, exclude=exclude)
+    except InputError as exc:
+        if exc.source in ("coordinates", "time range"):
+            raise InputError(kinematics, exc.problem) from None  # name the file, not the argument
+        raise
     notes += list(res.notes)
     kinematics_only = not ext
     report = {
