@@ -16,6 +16,10 @@ Motion (model coordinates, gait2392 names; the expert's joint axes):
   knee flexion 4-59 deg, ankle -16..10 deg), the left side half a cycle later;
 * ``functional_hip`` (optional): star arcs of 40 deg, right hip then left hip.
 
+In every frame the pelvis height puts the lowest point of the feet (convex
+hulls of the calcaneus and toes meshes) on the floor, y = 0 (`on_the_floor`):
+the stance foot rests on the floor, the swing foot clears it.
+
 Markers: the placed sites (rigid on their bodies) plus a soft-tissue artefact
 linear in the driving joint angles, as in `phantoms.motion` (segment amplitudes
 over the reference excursions: thigh 10-20 mm, shank 5-15 mm, pelvis 4-6 mm,
@@ -56,13 +60,32 @@ def _joint_origin(model, st, joint):
     return st.rotations[:, b] @ j.parent_offset.translation + st.positions[:, b]
 
 
-def _lowest_foot(anat: RealAnatomy, st, frame=0) -> float:
-    ys = []
-    for bone in [b for b in anat.meshes if b.startswith(("calcn", "toes"))]:
-        k = anat.model.body_index(anat.bone_body[bone])
-        V = np.asarray(anat.local_meshes[bone].vertices)
-        ys.append(float((V @ st.rotations[frame, k].T + st.positions[frame, k])[:, 1].min()))
-    return min(ys)
+def _foot_points(anat: RealAnatomy) -> list[tuple[int, np.ndarray]]:
+    """(body index, convex-hull vertices in the body frame) of every foot bone (calcaneus, toes)."""
+    key = "foot_hulls"
+    if key not in anat._cache:
+        out = []
+        for bone in [b for b in anat.meshes if b.startswith(("calcn", "toes"))]:
+            k = anat.model.body_index(anat.bone_body[bone])
+            out.append((k, np.asarray(anat.local_meshes[bone].convex_hull.vertices)))
+        anat._cache[key] = out
+    return anat._cache[key]
+
+
+def on_the_floor(anat: RealAnatomy, q: np.ndarray) -> np.ndarray:
+    """Copy of q (F, n_q) with pelvis_ty shifted per frame so the lowest foot point is on the floor (y = 0).
+
+    The stance foot then rests on the floor and the swing foot clears it: the pelvis's vertical motion
+    follows from the legs (the model ground's Y is up).
+    """
+    st = _fk(anat.model, q)
+    low = np.full(q.shape[0], np.inf)
+    for k, V in _foot_points(anat):
+        y = np.einsum("fj,pj->fp", st.rotations[:, k, 1, :], V) + st.positions[:, k, 1][:, None]
+        low = np.minimum(low, y.min(axis=1))
+    q = q.copy()
+    q[:, anat.model.coordinate_index("pelvis_ty")] -= low
+    return q
 
 
 def standing_coordinates(anat: RealAnatomy) -> np.ndarray:
@@ -77,9 +100,7 @@ def standing_coordinates(anat: RealAnatomy) -> np.ndarray:
         st = _fk(m, q)
         d = np.mean([(_joint_origin(m, st, f"knee_{s}") - _joint_origin(m, st, f"hip_{s}"))[0] for s in anat.sides], axis=0)
         q[it] -= np.arctan2(d[0], -d[1])            # rotate about Z until hip -> knee points straight down
-    st = _fk(m, q)
-    q[m.coordinate_index("pelvis_ty")] -= _lowest_foot(anat, st)
-    return q
+    return on_the_floor(anat, q[None])[0]
 
 
 def coordinate_signs(anat: RealAnatomy, q0: np.ndarray) -> dict:
@@ -164,9 +185,8 @@ def real_gait_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, rate: 
     q[:, ix("pelvis_list")] += np.radians(4.0) * np.sin(2 * np.pi * phase)
     q[:, ix("pelvis_rotation")] += np.radians(5.0) * np.sin(2 * np.pi * phase + np.pi / 2)
     q[:, ix("pelvis_tx")] += speed * t
-    q[:, ix("pelvis_ty")] += 0.015 * np.cos(4 * np.pi * phase) - 0.01
     q[:, ix("pelvis_tz")] += 0.015 * np.sin(2 * np.pi * phase)
-    return q
+    return on_the_floor(anat, q)
 
 
 def real_functional_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, rate: float,
@@ -192,7 +212,7 @@ def real_functional_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, 
         q[sl, ix(f"hip_flexion_{s}")] += signs["hip_flexion"] * flex
         q[sl, ix(f"hip_adduction_{s}")] -= signs["hip_adduction"] * abd
         q[sl, ix(f"knee_angle_{s}")] += signs["knee_angle"] * np.radians(10) * np.abs(flex) / R
-    return q
+    return on_the_floor(anat, q)
 
 
 # --------------------------------------------------------------------------- truth model

@@ -279,3 +279,26 @@ def test_cli_phantom_anatomy(shared_data, tmp_path, capsys):
         err = capsys.readouterr().err
         assert code == 2 and err.startswith("error: ") and len(err.strip().splitlines()) == 1, (bad, err)
         assert not (tmp_path / "bad").exists()
+
+
+def test_gait_keeps_the_stance_foot_on_the_floor(icl):
+    """Every gait frame has its lowest foot point on the floor (y = 0); each foot is on it 35-65 % of the cycle."""
+    from phantoms.real_subject import (_fk, _foot_points, coordinate_signs, real_gait_coordinates,
+                                       standing_coordinates)
+
+    q0 = standing_coordinates(icl)
+    signs = coordinate_signs(icl, q0)
+    assert signs["hip_flexion"] == 1.0 and signs["knee_angle"] == -1.0 and signs["ankle_angle"] == 1.0
+    q = real_gait_coordinates(icl, q0, signs, 100.0)
+    st = _fk(icl.model, q)
+    low = {}
+    for k, V in _foot_points(icl):
+        side = icl.model.body_names[k][-1]
+        y = (np.einsum("fj,pj->fp", st.rotations[:, k, 1, :], V) + st.positions[:, k, 1][:, None]).min(axis=1)
+        low[side] = np.minimum(low.get(side, np.inf), y)
+    both = np.minimum(low["r"], low["l"])
+    assert np.abs(both).max() < 1e-9
+    for s in "rl":
+        assert 0.35 < np.mean(low[s] < 0.002) < 0.65 and low[s].max() > 0.05
+    ty = q[:, icl.model.coordinate_index("pelvis_ty")]
+    assert 0.02 < np.ptp(ty) < 0.07
