@@ -599,7 +599,6 @@ def draw_realistic_subjects(n: int, seed: int, data_root: str | os.PathLike | No
     root = Path(data_root) if data_root else None
     reals = [k for k, f in REAL_ANATOMIES.items()
              if root is not None and (root / "bones" / k).is_dir() and (root / "reference_models" / f).is_file()]
-    anatomies = ["analytic"] + reals
     real_sets = ("ior", "cast", "opensim", "pig")
     builds = ("child", "adult", "obese")
     out = []

@@ -336,7 +336,6 @@ def load_real_anatomy(anatomy_dir: str | os.PathLike, reference: str | os.PathLi
     joints = []
     coords = {c_.name: c_ for c_ in ref.coordinates}
     coord_list = []
-    gp_coords = tuple(gp.coordinates)
     for j in ref.joints:
         if j is gp:
             continue
@@ -380,7 +379,6 @@ def load_real_anatomy(anatomy_dir: str | os.PathLike, reference: str | os.PathLi
     pelvis_coords = [Coordinate("pelvis_tilt"), Coordinate("pelvis_list"), Coordinate("pelvis_rotation"),
                      Coordinate("pelvis_tx", "translational"), Coordinate("pelvis_ty", "translational"),
                      Coordinate("pelvis_tz", "translational")]
-    del gp_coords
     E = np.eye(3)
     ax = lambda v, n: TransformAxis(v, _linear(), (n,))  # noqa: E731
     ground = CustomJoint("ground_pelvis", "ground", "pelvis", tuple(c_.name for c_ in pelvis_coords),

@@ -124,7 +124,6 @@ def coordinate_signs(anat: RealAnatomy, q0: np.ndarray) -> dict:
     knee = lambda st: _joint_origin(m, st, f"knee_{s}")[0]  # noqa: E731
     ankle = lambda st: _joint_origin(m, st, f"ankle_{s}")[0]  # noqa: E731
     fem = m.body_index(f"femur_{s}")
-    cal = m.body_index(f"calcn_{s}")
 
     def lat_point(st):
         k = _joint_origin(m, st, f"knee_{s}")[0]
@@ -133,8 +132,6 @@ def coordinate_signs(anat: RealAnatomy, q0: np.ndarray) -> dict:
         ax = R @ j.parent_offset.rotation[:, 2]
         return k + 0.05 * (ax if ax @ lat > 0 else -ax)
 
-    toe = lambda st: st.rotations[0, cal] @ np.array([0.0, 0.0, 0.0]) + st.positions[0, cal]  # noqa: E731
-    heel_to_toe = None
     out["hip_flexion"] = np.sign(moved(f"hip_flexion_{s}", knee) @ _X)
     out["hip_adduction"] = np.sign(-(moved(f"hip_adduction_{s}", knee) @ lat))
     out["hip_rotation"] = np.sign(moved(f"hip_rotation_{s}", lat_point) @ _X)
@@ -150,7 +147,6 @@ def coordinate_signs(anat: RealAnatomy, q0: np.ndarray) -> dict:
 
     out["ankle_angle"] = np.sign(moved(f"ankle_angle_{s}", fore) @ _Y)
     out["subtalar_angle"] = 1.0
-    del toe, heel_to_toe
     return {k: float(v) if v != 0 else 1.0 for k, v in out.items()}
 
 
@@ -464,10 +460,8 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     write_marker_set(inside(out, "markers.json"), written)
     # ---- what the lab measures (tape and calliper on the skin), SI
     st0 = _fk(model, q0)
-    mk = {n: trials[0].clean[0, i] for i, n in enumerate(trials[0].markers.names)}
     hjc = {s: _joint_origin(model, st0, f"hip_{s}")[0] for s in anat.sides}
     kjc = {s: _joint_origin(model, st0, f"knee_{s}")[0] for s in anat.sides}
-    ajc = {s: _joint_origin(model, st0, f"ankle_{s}")[0] for s in anat.sides}
     lms = {}
     from .marker_placement import MARKER_RADIUS, find_landmarks
 

@@ -149,11 +149,9 @@ def _check_written(out, truth, anat, ms_name):
 
 def _bone_distance(anat, label, tm):
     """Distance from a marker (body frame) to the nearest vertex of its landmark's bone."""
-    bone_of = {"ASI": "pelvis", "PSI": "pelvis"}
     p = np.asarray(tm["offset_m"])
     surf = np.asarray(tm["surface_point_body_m"])
     bones = [b for b, body in anat.bone_body.items() if body == tm["body"]]
-    del bone_of
     V = np.concatenate([np.asarray(anat.local_meshes[b].vertices) for b in bones])
     return float(np.min(np.linalg.norm(V - surf, axis=1))), float(np.linalg.norm(p - surf))
 
@@ -233,7 +231,7 @@ def test_lhdl_ct_tibia_with_fibula_component(shared_data, tmp_path, opensim):
 
     anat = load_real_anatomy(shared_data / "bones" / "LHDL_CT", shared_data / "reference_models" / "manual_LHDL_CT.osim")
     assert anat.fibula_from == "tibia component" and "mtp_angle_l" in anat.model.coordinate_names
-    out, truth = _write(tmp_path, anat, "lhdl", marker_set="ior", lab="z-up", gait_trials=0)
+    out, _ = _write(tmp_path, anat, "lhdl", marker_set="ior", lab="z-up", gait_trials=0)
     r = opensim_inverse_kinematics(out / "truth_model.osim", out / "truth" / "static_markers.trc")
     assert r["rms"].max() < 5e-4
 
