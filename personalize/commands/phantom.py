@@ -4,6 +4,14 @@ Outputs (in ``--out``): ``labels.nii.gz`` (int16 labels, affine in mm, scanner
 frame), ``label_map.json`` (bone -> label), ``meshes/<bone>.ply`` (exact
 surfaces, mm, scanner frame) and ``truth.json`` (every landmark, axis, scalar
 and joint frame, metres, scanner frame).
+
+``--anatomy DIR --reference MODEL.osim`` builds the phantom on a real subject's
+bone meshes with the expert model as truth (`phantoms.real_subject`): any
+``--marker-set`` (pig, ior, cast, opensim or a markers.json), ``--tissue``
+child/adult/obese, plus ``markers.json``, ``truth_model.osim`` (ground = lab,
+the placed markers) and ``subject.json``.  ``--lab``, ``--walk``, ``--format``,
+``--static-name``, ``--static-frames`` and ``--no-functional`` write the trials
+as a given lab does, for both anatomies.
 """
 from __future__ import annotations
 
