@@ -29,8 +29,10 @@ quintic spline (GCVSPL with zero error variance = natural quintic spline,
 knots at the samples: third and fourth derivatives zero at the ends), which
 is what the InverseDynamicsTool uses for velocities and accelerations.
 
-All functions filter along axis 0 (time) and keep NaN-free input; a signal
-with gaps must be filled first (`kinematics.c3d.fill_gaps`).
+All functions filter along axis 0 (time).  `lowpass` refuses NaN;
+`lowpass_runs` and `filter_markers` filter each gap-free run of a signal on
+its own and leave the gaps NaN (fill short gaps first with
+`kinematics.c3d.fill_gaps` to keep runs long).
 """
 from __future__ import annotations
 
@@ -40,8 +42,8 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["DEFAULT_CUTOFF_HZ", "ResidualAnalysis", "choose_cutoff", "corrected_cutoff", "derivatives", "lowpass",
-           "residual_analysis"]
+__all__ = ["DEFAULT_CUTOFF_HZ", "ResidualAnalysis", "choose_cutoff", "corrected_cutoff", "derivatives",
+           "filter_markers", "lowpass", "lowpass_runs", "residual_analysis"]
 
 DEFAULT_CUTOFF_HZ = 6.0
 
@@ -94,7 +96,9 @@ def lowpass(x, rate: float, cutoff: float = DEFAULT_CUTOFF_HZ, *, order: int = 2
             raise InputError("cutoff", f"cut-off {cutoff} Hz is too close to the Nyquist frequency for a double pass")
         sos = signal.butter(order, fc, btype="low", fs=rate, output="sos")
         n = x.shape[0]
-        padlen = min(3 * (2 * len(sos) + 1), n - 1)
+        # odd padding over three cut-off periods (scipy's default, 3 sections' length, leaves 4x larger
+        # end transients on gait signals)
+        padlen = min(max(3 * (2 * len(sos) + 1), round(3 * rate / cutoff)), n - 1)
         return signal.sosfiltfilt(sos, x, axis=0, padtype="odd", padlen=padlen)
     if method == "opensim":
         return _opensim_lowpass(x, rate, cutoff)
@@ -255,3 +259,32 @@ def choose_cutoff(x, rate: float, cutoffs=None) -> tuple[float, np.ndarray]:
     res = _residuals(x2[:, moving], rate, fc, 2)  # all channels filtered together per candidate
     per[moving] = [_pick(fc, res[:, j], None).cutoff for j in range(res.shape[1])]
     return float(np.nanmedian(per)), per
+
+
+def lowpass_runs(x, rate: float, cutoff: float = DEFAULT_CUTOFF_HZ, *, order: int = 2, method: str = "winter",
+                 min_samples: int = 4) -> np.ndarray:
+    """`lowpass` of every gap-free run of `x` (F, ...) on its own; NaN samples stay NaN.
+
+    A sample is missing when any of its components (trailing axes) is not
+    finite.  Runs shorter than `min_samples` cannot be filtered and become NaN
+    (a filter with no context would return them unchanged, i.e. unfiltered).
+    """
+    x = np.asarray(x, float)
+    ok = np.all(np.isfinite(x.reshape(x.shape[0], -1)), axis=1)
+    out = np.full_like(x, np.nan)
+    d = np.diff(np.concatenate([[0], ok.astype(np.int8), [0]]))
+    for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
+        if b - a >= min_samples:
+            out[a:b] = lowpass(x[a:b], rate, cutoff, order=order, method=method)
+    return out
+
+
+def filter_markers(trial, cutoff: float = DEFAULT_CUTOFF_HZ, *, order: int = 2):
+    """A `MarkerTrial` with every marker low-passed (Winter's double pass) run by run; gaps stay NaN."""
+    from .markers import MarkerTrial
+
+    pos = np.stack([lowpass_runs(trial.positions[:, j], trial.rate, cutoff, order=order)
+                    for j in range(len(trial.names))], axis=1)
+    extra = dict(trial.extra)
+    extra["lowpass_hz"] = float(cutoff)
+    return MarkerTrial(trial.names, pos, trial.rate, trial.time, trial.source, extra)
