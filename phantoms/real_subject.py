@@ -212,12 +212,58 @@ def real_functional_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, 
 
 
 # --------------------------------------------------------------------------- truth model
-def truth_model(anat: RealAnatomy, lab: Lab, placed: dict[str, PlacedMarker] | None = None):
-    """The truth skeleton with ground = the lab frame (ground_pelvis parent frame = `lab`) and the placed markers."""
+#: segment mass fractions of body mass (de Leva 1996, J Biomech 29:1223, male); the pelvis body carries
+#: the head, arms and trunk (the model has no torso), the foot's share is split talus 10 %, calcaneus 90 %
+#: (or 75 % / 15 % toes with a toes body)
+MASS_FRACTIONS = {"femur": 0.1416, "tibia": 0.0433, "foot": 0.0137}
+
+
+def segment_bodies(anat: RealAnatomy, mass: float):
+    """Bodies with `mass` (kg) distributed by `MASS_FRACTIONS`: com and inertia of each body's bone hull.
+
+    The expert models' own mass properties are not usable (ICL-MRI's are mesh volumes in mm^3), so every
+    body gets its share of the subject's mass, its centre of mass at the centroid of the convex hull of its
+    bones and the hull's inertia at that mass (uniform density).
+    """
+    import trimesh
+
+    from kinematics.model import Body
+
+    m = anat.model
+    has_toes = any(b.name.startswith("toes_") for b in m.bodies)
+    frac = {}
+    for b in m.bodies[1:]:
+        base = b.name.split("_")[0]
+        if base in ("femur", "tibia"):
+            frac[b.name] = MASS_FRACTIONS[base]
+        elif base in ("talus", "calcn", "toes"):
+            share = {"talus": 0.10, "calcn": 0.75 if has_toes else 0.90, "toes": 0.15}[base]
+            frac[b.name] = MASS_FRACTIONS["foot"] * share
+    frac["pelvis"] = 1.0 - sum(frac.values())
+    bodies = []
+    for b in m.bodies[1:]:
+        V = anat.body_vertices(b.name)
+        if len(V) < 4:
+            bodies.append(b)
+            continue
+        hull = trimesh.convex.convex_hull(V)
+        mb = float(mass * frac.get(b.name, 0.0))
+        I = hull.moment_inertia * (mb / hull.volume) if hull.volume > 0 else np.zeros((3, 3))
+        bodies.append(Body(b.name, mb, np.asarray(hull.center_mass, float), I))
+    return tuple(bodies)
+
+
+def truth_model(anat: RealAnatomy, lab: Lab, placed: dict[str, PlacedMarker] | None = None, mass: float | None = None):
+    """The truth skeleton with ground = the lab frame (ground_pelvis parent frame = `lab`) and the placed markers.
+
+    With `mass` (kg) the bodies get `segment_bodies` mass properties.
+    """
     from kinematics.joints import CustomJoint, Transform
     from kinematics.model import Marker
 
     m = anat.model
+    if mass is not None:
+        m = m.replace(bodies=segment_bodies(anat, mass))
     joints = []
     for j in m.joints:
         if j.parent == "ground":
@@ -400,7 +446,12 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     trials = make_real_trials(anat, lab, placed, q0, signs, seed, rate=rate, gait_trials=gait_trials,
                               functional=functional, static_frames=static_frames, sta=sta, sta_scale=sta_scale,
                               noise_sd=noise_sd, static_only=static_only)
-    model = truth_model(anat, lab, placed)
+    bmi = {"child": 17.0, "adult": 23.0, "obese": 34.0}[build]
+    hip_knee = [np.linalg.norm(anat.joints_scanner[f"hip_{s}"][0] - anat.joints_scanner[f"knee_{s}"][0])
+                for s in anat.sides]
+    height = round(float(np.mean(hip_knee)) / 0.245, 3)     # femur length ~ 24.5 % of stature (Trotter & Gleser)
+    body_mass = round(bmi * height**2, 1)
+    model = truth_model(anat, lab, placed, mass=body_mass)
     # ---- imaging
     bones_out = {}
     for b, mesh in anat.meshes.items():
@@ -460,7 +511,6 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     write_marker_set(inside(out, "markers.json"), written)
     # ---- what the lab measures (tape and calliper on the skin), SI
     st0 = _fk(model, q0)
-    hjc = {s: _joint_origin(model, st0, f"hip_{s}")[0] for s in anat.sides}
     kjc = {s: _joint_origin(model, st0, f"knee_{s}")[0] for s in anat.sides}
     lms = {}
     from .marker_placement import MARKER_RADIUS, find_landmarks
@@ -476,11 +526,8 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
         subject[f"{side}_leg_length"] = float(np.linalg.norm(lms[f"{P}ASI"] - kjc[s]) + np.linalg.norm(kjc[s] - lms[f"{P}MMA"]) + 0.01)
         subject[f"{side}_knee_width"] = float(np.linalg.norm(lms[f"{P}KNE"] - lms[f"{P}MFC"]) + 2 * tissue.get(f"{P}KNE", 0.005))
         subject[f"{side}_ankle_width"] = float(np.linalg.norm(lms[f"{P}ANK"] - lms[f"{P}MMA"]) + 2 * tissue.get(f"{P}ANK", 0.003))
-    femur_len = float(np.linalg.norm(hjc[anat.sides[0]] - kjc[anat.sides[0]]))
-    height = round(femur_len / 0.245, 3)       # femur length ~ 24.5 % of stature (Trotter & Gleser)
-    bmi = {"child": 17.0, "adult": 23.0, "obese": 34.0}[build]
     subject.update({"inter_asis_distance": float(np.linalg.norm(lms["RASI"] - lms["LASI"])),
-                    "marker_diameter": 2 * MARKER_RADIUS, "height": height, "mass": round(bmi * height**2, 1)})
+                    "marker_diameter": 2 * MARKER_RADIUS, "height": height, "mass": body_mass})
     write_text(inside(out, "subject.json"), json.dumps(subject, indent=1) + "\n")
     # ---- truth.json
     joints = {k: {"origin": o.tolist(), "rotation": R.tolist()} for k, (o, R) in anat.joints_scanner.items()}

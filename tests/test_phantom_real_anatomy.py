@@ -75,6 +75,12 @@ def test_opensim_ik_reproduces_truth_icl_ior_yup(icl, tmp_path, opensim):
     osim_model = opensim.Model(str(out / "truth_model.osim"))
     g = osim_model.getGravity()
     assert [g.get(i) for i in range(3)] == pytest.approx([0.0, -9.80665, 0.0])
+    # mass properties: the subject's mass shared by the bodies (the expert's ICL masses are mm^3 volumes)
+    subject = json.loads((out / "subject.json").read_text())
+    bs = osim_model.getBodySet()
+    masses = [bs.get(i).getMass() for i in range(bs.getSize())]
+    assert sum(masses) == pytest.approx(subject["mass"], rel=1e-9) and min(masses) > 0.05
+    assert 1.5 < subject["height"] < 2.0 and 0.7 < subject["right_leg_length"] < 1.1
     for trial in ("static", "gait_01"):
         r = opensim_inverse_kinematics(out / "truth_model.osim", out / "truth" / f"{trial}_markers.trc")
         assert r["rms"].max() < 5e-4, (trial, r["rms"].max())
