@@ -361,6 +361,9 @@ def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict 
         raise InputError(model.name or "model", f"has no body {', '.join(missing)} to apply the ground reactions to")
     markers = read_c3d(path)
     contacts = assign_feet(plates, markers)
+    if not contacts:
+        notes.append(f"no force plate is loaded above {threshold:g} N: no ground reactions, kinematics only")
+        return TrialLoads((), (), (), tuple(notes))
     loads, _ = loads_from_plates(plates, contacts, bodies, rotation=lab_to_ground(model))
     notes += [c.describe() for c in contacts]
     exclude = [(c.start_time, c.end_time, f"plate {c.plate + 1}: {', '.join(c.flags) or 'no foot'}")

@@ -25,7 +25,7 @@ forces filtered at the same cut-off unless ``--no-filter-loads``).  DIR
 ``report.json``
     inputs, cut-offs, model mass, notes (plate assignment, excluded frames).
 
-A trial without force plates gives kinematics only (``coordinates_filtered.sto``
+A trial without force plates (or whose plates are never loaded) gives kinematics only (``coordinates_filtered.sto``
 and the report): joint moments without the ground reactions would be wrong
 during stance and are not written.  Frames whose ground reaction cannot be
 assigned to one foot (two feet on a plate, a centre of pressure outside its
@@ -173,8 +173,8 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
                 plot_moments(stage / "moments.png", res)
         (stage / "report.json").write_text(json.dumps(report, indent=2, default=float), encoding="utf-8")
     if kinematics_only:
-        console.print("dynamics: no force plates in the trial: kinematics only (filtered coordinates), "
-                      f"no joint moments -> {out}")
+        console.print("dynamics: no ground reactions (no force plate, or none loaded): kinematics only "
+                      f"(filtered coordinates), no joint moments -> {out}")
     else:
         ex = f", {len(exclude)} interval(s) excluded" if exclude else ""
         console.print(f"dynamics: {res.time.shape[0]} frames {res.time[0]:.3f}-{res.time[-1]:.3f} s, "
