@@ -51,6 +51,7 @@ import tempfile
 import threading
 import time
 import uuid
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
@@ -493,9 +494,18 @@ def dask_client(scheduler=None, workers: int = 2) -> Iterator[Any]:
     pre_spawn.update(THREAD_ENV)
     saved_env = dict(os.environ)  # the nanny copies its pre-spawn environment into this process's os.environ
     try:
-        with dask.config.set({"distributed.nanny.pre-spawn-environ": pre_spawn}):
-            cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.ERROR)
+        # the worker processes ignore SIGINT (inherited across their exec): a Ctrl-C at the terminal reaches the
+        # whole process group, and the batch, not each worker with its traceback, stops the work
+        main = threading.current_thread() is threading.main_thread()
+        old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+        try:
+            with dask.config.set({"distributed.nanny.pre-spawn-environ": pre_spawn}), warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="Port .* is already in use")
+                cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=logging.ERROR)
+        finally:
+            if old is not None:
+                signal.signal(signal.SIGINT, old)
         client = Client(cluster)
         try:
             yield client
@@ -613,9 +623,11 @@ def run_batch(manifest: str | os.PathLike | Sequence[Subject], out: str | os.Pat
     job_ref = _job_reference(job)
     if isinstance(job_ref, str):
         resolve_job(job_ref)  # fail here, once, rather than on every subject
+    from .outputs import check_output_dir
+
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "exists and is not a folder")
+    # a batch folder is resumed, never replaced: only its kind, its place and that it can be written are checked
+    check_output_dir(out, inputs=[s.path for s in subjects], overwrite=True)
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / BATCH_CSV
     results: dict[str, SubjectResult] = {}
@@ -640,13 +652,13 @@ def run_batch(manifest: str | os.PathLike | Sequence[Subject], out: str | os.Pat
     t0 = t1 = time.perf_counter()
     started_ns = time.time_ns() - 1_000_000_000  # file times have coarse resolution on some file systems
     if todo:
+        from .errors import Interrupted
+
         with _termination_raises(), _quiet_dask():
             try:
                 n_workers, t0 = _run_todo(todo, subjects, results, ordered, csv_path, out, job_ref, job_kwargs,
                                           scheduler, workers, retries, progress, console, started_ns)
-            except KeyboardInterrupt as exc:
-                from .errors import Interrupted
-
+            except (KeyboardInterrupt, Interrupted) as exc:
                 for s, _ in todo:
                     _remove_leftovers(out, s.id)
                 done = sum(r.status in ("ok", "skipped") for r in results.values())

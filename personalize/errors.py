@@ -8,12 +8,14 @@ from kinematics.errors import FitError, InputError
 __all__ = ["InputError", "FitError", "Interrupted", "handle_termination"]
 
 
-class Interrupted(KeyboardInterrupt):
+class Interrupted(BaseException):
     """The run was stopped by a signal (SIGINT: Ctrl-C, SIGTERM: ``kill``, a scheduler's time limit).
 
-    A `KeyboardInterrupt`, so that no ``except Exception`` swallows it; the CLI
-    prints ``interrupted (SIGTERM)`` plus `detail` and exits with ``128 + signum``
-    (130 for SIGINT, 143 for SIGTERM), as shells report a process killed by it.
+    A `BaseException` like `KeyboardInterrupt`, so that no ``except Exception``
+    swallows it, but not one: typer turns a KeyboardInterrupt into a silent
+    exit 130.  The CLI prints ``interrupted (SIGTERM)`` plus `detail` and exits
+    with ``128 + signum`` (130 for SIGINT, 143 for SIGTERM), as shells report a
+    process killed by it.
     """
 
     def __init__(self, signum: int = signal.SIGINT, detail: str = ""):
@@ -38,5 +40,6 @@ def _raise_interrupted(signum, frame):  # pragma: no cover - exercised through s
 
 
 def handle_termination() -> None:
-    """Make SIGTERM raise `Interrupted` in the main thread (SIGINT already raises KeyboardInterrupt)."""
+    """Make SIGINT and SIGTERM raise `Interrupted` in the main thread (the command line's handlers)."""
     signal.signal(signal.SIGTERM, _raise_interrupted)
+    signal.signal(signal.SIGINT, _raise_interrupted)

@@ -73,3 +73,21 @@ def fault_job(subject_dir: Path, out: Path, progress=None) -> dict:
         ctypes.string_at(0)
     (Path(out) / "partial.txt").unlink()
     return label_volume_job(subject_dir, out)
+
+
+def segv_or_env_job(subject_dir: Path, out: Path, progress=None) -> dict:
+    """Segfault when ``subject_dir/fault.txt`` says "segv", else `environment_job`."""
+    if (Path(subject_dir) / "fault.txt").exists():
+        import ctypes
+
+        ctypes.string_at(0)
+    return environment_job(subject_dir, out)
+
+
+def sleep_job(subject_dir: Path, out: Path, progress=None) -> dict:
+    """Sleep ``COHORT_SLEEP`` seconds (a subject that takes a while), then succeed."""
+    import time
+
+    time.sleep(float(os.environ.get("COHORT_SLEEP", "1")))
+    (Path(out) / "done.txt").write_text("done")
+    return {"slept": float(os.environ.get("COHORT_SLEEP", "1"))}
