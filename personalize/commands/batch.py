@@ -6,9 +6,12 @@ runs as one dask task (a local cluster of K single-threaded worker processes by
 default, or the cluster at ``--scheduler``); results go to ``DIR/<subject>/``,
 published only when the subject succeeded, and ``DIR/batch.csv`` lists
 subject, status (ok, error, skipped), seconds, error message and output folder.
-Re-running skips subjects whose ``summary.json`` is complete.  Exit code 0 when
-every subject is ok or skipped, 1 when some failed (see batch.csv), 2 for a
-bad manifest or option.
+Re-running skips subjects whose ``summary.json`` is complete.  Each subject's
+job runs in a process of its own: one that crashes (segfault, ``os._exit``, out
+of memory) is that subject's error row, retried ``--retries`` times.  Exit code 0
+when every subject is ok or skipped, 1 when some failed (see batch.csv), 2 for a
+bad manifest, option or --out, 130 / 143 when stopped by SIGINT (Ctrl-C) /
+SIGTERM (batch.csv then lists what is done; rerun the same command to resume).
 """
 from __future__ import annotations
 

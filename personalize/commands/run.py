@@ -6,7 +6,10 @@ the hip centres) and ``subject.json``; the folder `personalize phantom`
 writes is itself a valid SUBJECT_DIR.  Writes model.osim, model.json,
 meshes/, landmarks.json, joints.json, kinematics/<trial>.mot (+ marker
 errors), report.html and summary.json; when the subject is refused, only
-report.html stating the error (exit code 2 with a one-line message).
+report.html stating the error (exit code 2 with a one-line message).  --out is
+checked before any work (`personalize.outputs`): an existing non-empty folder
+is refused unless --overwrite, which replaces it whole.  Progress: step N of
+about M, elapsed and remaining time (plain lines when stderr is not a terminal).
 """
 from __future__ import annotations
 
