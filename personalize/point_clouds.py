@@ -13,15 +13,16 @@ surface, so reading reconstructs one:
        || grad chi - V ||^2 + alpha sum_i chi(p_i)^2
 
    with ``V`` the normal field; its octree depth is set so the finest cell
-   is half the point spacing ``h`` (median nearest-neighbour distance);
-3. each vertex is projected on the plane of its nearest points (centroid,
-   mean normal; `_project_to_points`), which undoes Poisson's smoothing.
+   is half the point spacing ``h`` (median nearest-neighbour distance).
+   Projecting the vertices on the local planes of their nearest points was
+   tried: where the sampling is sparse (ICL shafts at 20 % of the vertices,
+   gaps of 10-20 mm) it pulls the surface inward (femur volume -5 %).
 
 The reconstruction is only as good as the sampling: ``report["sampling_sd_m"]``
 is the rms distance of the points to the reconstructed surface combined with
 the chordal error of a surface sampled every ``h`` (``h^2 / (8 R)``, R = 10 mm,
-a typical articular radius); `personalize.landmarks` adds it to the stated
-covariance of every landmark of such a bone.
+a typical articular radius); it is added to the stated
+covariance of every landmark of such a bone (`add_sampling_uncertainty`).
 """
 from __future__ import annotations
 
@@ -33,14 +34,11 @@ import trimesh
 
 from .errors import InputError
 
-__all__ = ["read_point_cloud", "reconstruct_surface", "sampling_sd_m", "MIN_POINTS", "ARTICULAR_RADIUS_M"]
+__all__ = ["read_point_cloud", "reconstruct_surface", "sampling_sd_m", "add_sampling_uncertainty", "MIN_POINTS",
+           "ARTICULAR_RADIUS_M"]
 
-#: octree levels beyond the one whose cell matches the point spacing (finer cells follow the points closer;
-#: the vertices are projected on the points' local planes afterwards, `_project_to_points`)
+#: octree levels beyond the one whose cell matches the point spacing (finer cells follow the points closer)
 POISSON_EXTRA_DEPTH = 1
-#: neighbours of the local plane a reconstructed vertex is projected on
-PROJECTION_NEIGHBOURS = 8
-PROJECT = False
 #: fewest points of a bone cloud
 MIN_POINTS = 200
 #: curvature radius for the chordal term of the sampling error (articular surfaces: 10-25 mm)
@@ -141,7 +139,6 @@ def reconstruct_surface(points: np.ndarray, normals: np.ndarray | None = None, *
     mesh, _dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=depth, scale=1.1,
                                                                              linear_fit=True)
     v, f = np.asarray(mesh.vertices, float), np.asarray(mesh.triangles, np.int64)
-    v = _project_to_points(v, pts, nrm, tree) if PROJECT else v
     if len(f) == 0:
         raise InputError(source, "no surface could be reconstructed from the point cloud")
     out = trimesh.Trimesh(v, f, process=False, validate=False)
@@ -215,19 +212,25 @@ def _outward(points: np.ndarray, normals: np.ndarray, h: float, tree) -> np.ndar
     return n
 
 
-def _project_to_points(v: np.ndarray, pts: np.ndarray, nrm: np.ndarray, tree, iterations: int = 2) -> np.ndarray:
-    """Move each vertex onto the plane of its `PROJECTION_NEIGHBOURS` nearest points (one MLS step, repeated).
+def add_sampling_uncertainty(ls, surfaces) -> dict[str, float]:
+    """Add each point-cloud bone's sampling sd to the covariance of its landmarks (in place).
 
-    Poisson's indicator is smooth at the octree scale and cuts convex
-    surfaces short (~1 mm on ICL bones sampled at 2 mm); the local planes
-    (centroid of the neighbours, their mean oriented normal) put the vertices
-    back where the points are.
+    ``cov <- cov + sd^2 I`` for every landmark of a bone whose surface was
+    reconstructed from points (``report["sampling_sd_m"]``): the fitted
+    primitives see the reconstructed surface, whose error the fits' own
+    residuals cannot show.  Returns bone -> sd (m) for the bones changed.
     """
-    v = np.array(v, float)
-    for _ in range(iterations):
-        _, j = tree.query(v, k=PROJECTION_NEIGHBOURS)
-        c = pts[j].mean(axis=1)
-        n = nrm[j].sum(axis=1)
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        v -= np.einsum("ij,ij->i", v - c, n)[:, None] * n
-    return v
+    from .landmarks.common import Landmark
+
+    done = {}
+    for name, res in ls.bones.items():
+        s = surfaces.get(name)
+        sd = (getattr(s, "report", None) or {}).get("sampling_sd_m")
+        if not sd:
+            continue
+        for k, lm in list(res.landmarks.items()):
+            res.landmarks[k] = Landmark(position=lm.position, cov=np.asarray(lm.cov) + sd ** 2 * np.eye(3))
+        res.notes.append(f"{name}: surface reconstructed from a point cloud; landmark covariances include its "
+                         f"sampling sd {sd * 1e3:.2f} mm")
+        done[name] = float(sd)
+    return done

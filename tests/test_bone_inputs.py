@@ -187,3 +187,41 @@ def test_swapped_label_map_is_refused(tmp_path, capsys):
     code, err = _cli(args + [str(tmp_path / "swapped.json"), "--out", str(tmp_path / "bad")], capsys)
     assert code == 2 and "\n" not in err and "labels.nii.gz" in err and "check the label map" in err
     assert not (tmp_path / "bad").exists()
+
+
+# --------------------------------------------------------------------------- point clouds
+def _cloud(src, frac, seed=0):
+    m = trimesh.load(str(src), process=False)
+    keep = np.random.default_rng(seed).random(len(m.vertices)) < frac
+    return m, np.asarray(m.vertices)[keep]
+
+
+def test_point_cloud_files_are_read_and_surfaced(shared_data, tmp_path):
+    """A talus given as points only (PLY without faces, XYZ text, PCD): normals estimated and turned
+    outward, a closed surface reconstructed near the mesh the points came from, the sampling sd stated."""
+    import open3d as o3d
+
+    from personalize.point_clouds import read_point_cloud, reconstruct_surface
+
+    mesh, pts = _cloud(shared_data / "bones" / "ICL_MRI" / "talus_r.ply", 0.2)
+    trimesh.PointCloud(pts).export(str(tmp_path / "a.ply"))
+    np.savetxt(tmp_path / "a.xyz", pts, fmt="%.5f", header="x y z (mm)")
+    o3d.io.write_point_cloud(str(tmp_path / "a.pcd"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
+    for name in ("a.ply", "a.xyz", "a.pcd"):
+        got, nrm = read_point_cloud(tmp_path / name)
+        assert nrm is None and np.allclose(got, pts, atol=1e-4), name
+    surf, rep = reconstruct_surface(pts)
+    assert surf.is_watertight and surf.volume == pytest.approx(mesh.volume, rel=0.03)
+    _, d, _ = trimesh.proximity.closest_point(mesh, surf.vertices)
+    assert np.median(d) < 0.3 and rep["normals"] == "estimated"          # mm
+    # the same cloud as a bone folder: read, reconstructed, sampling sd in metres (sub-millimetre here)
+    d2 = tmp_path / "bones"
+    d2.mkdir()
+    trimesh.PointCloud(pts).export(str(d2 / "talus_r.ply"))
+    meshes, _ = read_mesh_folder_detailed(d2)
+    r = meshes["talus_r"].report
+    assert r["input"] == "point cloud" and 1e-5 < r["sampling_sd_m"] < 1e-3
+    assert any("reconstructed from" in x for x in r["repairs"])
+    with pytest.raises(InputError, match="b.xyz: point cloud holds 50 points"):
+        np.savetxt(tmp_path / "b.xyz", pts[:50])
+        read_point_cloud(tmp_path / "b.xyz")

@@ -42,6 +42,7 @@ def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: 
 
     from ..frames import joints_document, joints_from_landmarks
     from ..landmarks import detect_landmarks
+    from ..point_clouds import add_sampling_uncertainty
     from ..surfaces import load_bones
 
     check_output_dir(out, inputs=[input, label_map], overwrite=overwrite)
@@ -58,6 +59,7 @@ def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: 
             raise InputError(input, "no recognisable bone surfaces")
         prog.update(task, completed=0, description="detecting landmarks")
         ls = detect_landmarks(surfaces, progress=tick, trust_names=trust_names)
+    add_sampling_uncertainty(ls, surfaces)
     joints, dropped = joints_from_landmarks(ls)
     rejected = dict(getattr(surfaces, "rejected", {}))
     for b, why in rejected.items():
