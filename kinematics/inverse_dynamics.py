@@ -21,6 +21,13 @@ For the coordinates q_k at times t_k (an IK result), the pipeline is
 Moments are N m for rotational coordinates, N for translational ones (the
 "*_moment" / "*_force" columns of OpenSim's output), in the model's
 coordinate directions; ``per_kg`` divides by the model's mass.
+
+Checked against OpenSim's InverseDynamicsTool on subject01_walk1 (the same
+files, 6 Hz): every column within 1e-5 of its peak (RMS).  Loads from a C3D
+trial come from `loads_from_c3d` (plates assigned to feet, rotated into the
+model's ground); frames whose ground reaction is unknown (two feet on a
+plate, a CoP outside its plate, a foot standing off the plates, no load data)
+are NaN, never computed with a missing ground reaction.
 """
 from __future__ import annotations
 
