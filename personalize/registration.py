@@ -62,7 +62,8 @@ MARKER_RADIUS = 0.007
 #: default sd (m) of marker placement (palpation) on top of the static-trial scatter
 MARKER_PLACEMENT_SD = 0.003
 #: p-value of a registration's full chi-square (`gate_statistic`) below which its bones are taken as another
-#: person's.  Phantom subjects registered to their own bones: p >= 0.96 on every segment (3 seeds); the pelvis
+#: person's.  Phantom subjects registered to their own bones: p >= 0.96 on every segment (3 seeds); a +3 sd
+#: (54 mm) ASIS tissue with a bone-only label volume (the prior is then wrong): pelvis p = 0.0017; the pelvis
 #: of another phantom: p = 7e-22, 2e-17, 2e-10 (statures apart) but 0.77-0.87 for two subjects of one size.
 GATE_P = 1e-6
 #: angular sd (deg) of an outward normal guessed from internal landmarks (no surface given)
