@@ -151,8 +151,15 @@ def coordinate_signs(anat: RealAnatomy, q0: np.ndarray) -> dict:
 
 
 def real_gait_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, rate: float, cycles: float = 2.0,
-                          speed: float = 1.25, cycle_time: float = 1.1, rng=None) -> np.ndarray:
-    """Walking (F, n_q) on `phantoms.motion`'s normative curves in the expert model's coordinates."""
+                          speed: float = 1.25, cycle_time: float = 1.1, rng=None,
+                          smooth_hz: float | None = None) -> np.ndarray:
+    """Walking (F, n_q) on `phantoms.motion`'s normative curves in the expert model's coordinates.
+
+    The pelvis height keeps the lowest foot point on the floor (`on_the_floor`); with `smooth_hz` it is
+    then low-passed (2nd-order Butterworth, zero lag): the vertical ground reaction of the whole body's
+    momentum stays within walking's 0.8-1.4 body weights instead of the spikes of a rigid foot roll-over
+    (up to 4.7 BW), at the price of the stance foot sitting within about 1 cm of the floor (4 Hz).
+    """
     from .motion import _GAIT, _periodic
 
     m = anat.model
@@ -182,7 +189,13 @@ def real_gait_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, rate: 
     q[:, ix("pelvis_rotation")] += np.radians(5.0) * np.sin(2 * np.pi * phase + np.pi / 2)
     q[:, ix("pelvis_tx")] += speed * t
     q[:, ix("pelvis_tz")] += 0.015 * np.sin(2 * np.pi * phase)
-    return on_the_floor(anat, q)
+    q = on_the_floor(anat, q)
+    if smooth_hz:
+        from scipy.signal import butter, filtfilt
+
+        b, a = butter(2, float(smooth_hz) / (0.5 * rate))
+        q[:, ix("pelvis_ty")] = filtfilt(b, a, q[:, ix("pelvis_ty")], padtype="odd")
+    return q
 
 
 def real_functional_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, rate: float,
@@ -330,7 +343,7 @@ class RealTrial:
 def make_real_trials(anat: RealAnatomy, lab: Lab, placed: dict, q0, signs, seed: int, *, rate: float = 100.0,
                      gait_trials: int = 1, gait_cycles: float = 2.0, functional: bool = True, static_frames: int = 200,
                      sta: bool = True, sta_scale: float = 1.0, noise_sd: float = 0.0005,
-                     static_only: tuple = ()) -> list[RealTrial]:
+                     static_only: tuple = (), smooth_hz: float | None = None) -> list[RealTrial]:
     """Static, gait and (optionally) functional trials of the placed markers (no file written)."""
     from kinematics.fk import point_positions
 
@@ -362,7 +375,8 @@ def make_real_trials(anat: RealAnatomy, lab: Lab, placed: dict, q0, signs, seed:
 
     add("static", "static", np.repeat(q0[None], max(int(static_frames), 1), axis=0))
     for i in range(gait_trials):
-        add(f"gait_{i + 1:02d}", "gait", real_gait_coordinates(anat, q0, signs, rate, gait_cycles, rng=rng))
+        add(f"gait_{i + 1:02d}", "gait", real_gait_coordinates(anat, q0, signs, rate, gait_cycles, rng=rng,
+                                                               smooth_hz=smooth_hz))
     if functional:
         add("functional_hip", "functional", real_functional_coordinates(anat, q0, signs, rate))
     return trials
@@ -391,7 +405,8 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
                        functional: bool = True, static_frames: int = 200, static_name: str = "static",
                        trial_format: str = "c3d", sta: bool = True, sta_scale: float = 1.0,
                        noise_sd: float = 0.0005, palpation: bool = True, rate: float = 100.0,
-                       mesh_folder: str = "meshes", progress: Callable[[str], None] | None = None) -> dict:
+                       mesh_folder: str = "meshes", force_plates: bool = False,
+                       progress: Callable[[str], None] | None = None) -> dict:
     """Write a real-anatomy phantom subject into `out_dir` (stage it with `kinematics.atomic.staged_dir`).
 
     Files: ``labels.nii.gz`` + ``label_map.json`` (voxelised meshes, scanner frame), ``meshes/<bone>.ply``
@@ -411,6 +426,9 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     static_frames : frames of the static trial; functional : write the functional hip trial
     mesh_folder : ``meshes`` (reference meshes beside a label volume) or ``bones`` (the subject's imaging IS a
         mesh folder, as `personalize run` reads it when there is no label volume)
+    force_plates : add force platforms under the complete stance phases to the gait C3Ds
+        (`phantoms.force_plates`; the gait's pelvis height is then smoothed at 4 Hz, see
+        `real_gait_coordinates`); truth in ``truth/<trial>_grf.sto`` and truth.json ``force_plates``
 
     Returns
     -------
@@ -443,9 +461,11 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     if not placed:
         raise InputError("--marker-set", f"no marker of {ms.name!r} lies on a body of the model")
     static_only = tuple(k for k in placed if ms.markers[k].static_only)
+    if force_plates and trial_format == "trc":
+        raise InputError("--force-plates", "force platforms are written in C3D trials: use --format c3d or both")
     trials = make_real_trials(anat, lab, placed, q0, signs, seed, rate=rate, gait_trials=gait_trials,
                               functional=functional, static_frames=static_frames, sta=sta, sta_scale=sta_scale,
-                              noise_sd=noise_sd, static_only=static_only)
+                              noise_sd=noise_sd, static_only=static_only, smooth_hz=4.0 if force_plates else None)
     bmi = {"child": 17.0, "adult": 23.0, "obese": 34.0}[build]
     hip_knee = [np.linalg.norm(anat.joints_scanner[f"hip_{s}"][0] - anat.joints_scanner[f"knee_{s}"][0])
                 for s in anat.sides]
@@ -483,10 +503,23 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     rot = [c.name for c in model.coordinates if c.kind == "rotational"]
     centre_names = {f"{j}_{s}": f"{s.upper()}{j[0].upper()}JC" for s in anat.sides for j in ("hip", "knee", "ankle")}
     listing = []
+    plates_truth: dict = {}
     for tr in trials:
         stem = static_name if tr.kind == "static" else tr.name
         if trial_format in ("c3d", "both"):
             write_c3d(inside(out, f"{stem}.c3d"), tr.markers)
+            if force_plates and tr.kind == "gait":
+                from kinematics.storage import write_sto
+
+                from .force_plates import add_force_plates, ground_reaction
+
+                grf, cop, foot = ground_reaction(anat, model, tr.q, rate, lab)
+                plates_truth[tr.name] = add_force_plates(inside(out, f"{stem}.c3d"), grf, cop, foot, lab, rate)
+                cols = [f"ground_force_v{a}" for a in "xyz"] + [f"ground_force_p{a}" for a in "xyz"] + ["foot_right"]
+                write_sto(inside(truth_dir, f"{tr.name}_grf.sto"), cols, tr.time,
+                          np.column_stack([grf, cop, (foot == "r").astype(float)]),
+                          header_extra=["frame=lab; force on the subject N; centre of pressure m; foot_right 1/0"],
+                          name="GroundReaction")
         if trial_format in ("trc", "both"):
             write_trc(inside(out, f"{stem}.trc"), tr.markers)
         # the model's coordinates, plus knee_flexion_<s> (flexion positive; not a model coordinate) so that
@@ -554,6 +587,7 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
         "markers": {k: {**p.to_json(), "segment": written.markers[k].segment,
                         "static_only": written.markers[k].static_only} for k, p in placed.items()},
         "landmarks_lab_standing_m": {k: v.tolist() for k, v in lms.items()},
+        "force_plates": plates_truth or None,
         "motion": {"rate_hz": float(rate), "trials": listing, "functional_trial": bool(functional),
                    "static_frames": int(static_frames), "format": trial_format, "static_file": static_name,
                    "noise_sd_m": float(noise_sd), "soft_tissue_artefact": bool(sta), "sta_scale": float(sta_scale),

@@ -306,3 +306,29 @@ def test_gait_keeps_the_stance_foot_on_the_floor(icl):
         assert 0.35 < np.mean(low[s] < 0.002) < 0.65 and low[s].max() > 0.05
     ty = q[:, icl.model.coordinate_index("pelvis_ty")]
     assert 0.02 < np.ptp(ty) < 0.07
+
+
+def test_force_plates_carry_the_momentum_ground_reaction(icl, tmp_path):
+    """Force platforms under the stance phases read back (kinematics.forceplates) as the truth's reaction."""
+    from kinematics.forceplates import read_force_plates
+    from kinematics.storage import read_sto
+
+    out, truth = _write(tmp_path, icl, "fp", marker_set="pig", lab="z-up", walk="-y", gait_trials=1,
+                        force_plates=True)
+    plates = truth["force_plates"]["gait_01"]
+    assert len(plates) >= 2 and {p["foot"] for p in plates} == {"r", "l"}
+    g = read_sto(out / "truth" / "gait_01_grf.sto")
+    F = g.values[:, :3]
+    cop = g.values[:, 3:6]
+    bw = json.loads((out / "subject.json").read_text())["mass"] * 9.80665
+    assert 0.95 < F[:, 2].mean() / bw < 1.05                     # momentum: mean vertical reaction = weight
+    assert F[10:-10, 2].max() < 1.6 * bw and F[10:-10, 2].min() > 0.6 * bw
+    fp = read_force_plates(out / "gait_01.c3d")
+    assert len(fp.plates) == len(plates)
+    for pl, t in zip(fp.plates, plates):
+        a, b = t["frames"]
+        sl = slice(a + 2, b - 1)                                 # away from the box-averaged on/off edges
+        assert np.abs(pl.force[sl] - F[sl]).max() < 0.005 * bw      # box average of the 1 kHz channels
+        d = np.linalg.norm(pl.cop[sl] - cop[sl], axis=1)
+        assert np.nanmax(d) < 0.015 and np.nanmedian(d) < 5e-4      # the CoP of the box-averaged wrench
+        assert np.allclose(pl.normal, [0, 0, 1])

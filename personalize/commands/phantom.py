@@ -69,6 +69,8 @@ def phantom(
                                      help="Fibula as its own bone, or as the tibia mesh's second component."),
     sta: bool = typer.Option(True, "--sta/--no-sta", help="Soft-tissue artefact on the markers."),
     marker_noise: float = typer.Option(0.5, "--marker-noise", help="Marker noise sd in mm."),
+    force_plates: bool = typer.Option(False, "--force-plates", help="With --anatomy: force platforms under the "
+                                                                    "stance phases of the gait C3Ds."),
 ) -> None:
     """Write a synthetic subject: label volume, exact meshes, motion trials (C3D) and ground truth."""
     from rich.console import Console
@@ -94,8 +96,10 @@ def phantom(
         _real_phantom(out, anatomy, reference, seed=seed, voxel=voxel, noise=level, marker_set=marker_set, lab=lab,
                       walk=walk, tissue=tissue, trial_format=trial_format, static_name=static_name,
                       static_frames=static_frames, functional=functional, fibula_mesh=fibula_mesh, sta=sta,
-                      marker_noise=marker_noise, motion=motion)
+                      marker_noise=marker_noise, motion=motion, force_plates=force_plates)
         return
+    if force_plates:
+        raise InputError("--force-plates", "force platforms are written for real-anatomy phantoms (--anatomy)")
     if marker_set.strip().lower() != "pig":
         raise InputError("--marker-set", "the analytic phantom carries the Plug-in-Gait set: use "
                                          "--anatomy/--reference for other marker sets")
@@ -139,7 +143,7 @@ def phantom(
 
 def _real_phantom(out: Path, anatomy: Path | None, reference: Path | None, *, seed, voxel, noise, marker_set, lab,
                   walk, tissue, trial_format, static_name, static_frames, functional, fibula_mesh, sta,
-                  marker_noise, motion) -> None:
+                  marker_noise, motion, force_plates=False) -> None:
     """``--anatomy DIR --reference MODEL.osim``: a phantom on real bones (`phantoms.real_subject`)."""
     from rich.console import Console
 
@@ -165,7 +169,7 @@ def _real_phantom(out: Path, anatomy: Path | None, reference: Path | None, *, se
                            voxel=tuple(v / 1000.0 for v in voxel), noise=noise, fibula_mesh=fibula_mesh,
                            functional=functional, static_frames=static_frames, static_name=static_name,
                            trial_format=trial_format, sta=sta, noise_sd=marker_noise / 1000.0,
-                           progress=lambda m: console.print(m))
+                           force_plates=force_plates, progress=lambda m: console.print(m))
     typer.echo(f"wrote real-anatomy phantom ({anat.name}, marker set {ms.name}, lab {lab_.name} walking {walk}, "
                f"{tissue} tissue, seed {seed}) to {out}")
 
