@@ -315,9 +315,13 @@ def static_equilibrium(element: FootElement, params: FootParameters | np.ndarray
             dz = z.copy()
             dz[:, k] += steps[k]
             J[:, :, k] = (_residuals(element, x, dz, *args)[0] - r) / steps[k]
+        # Levenberg-Marquardt step: Newton's where an equilibrium exists, and a frame without one
+        # settles at its least-imbalance pose (a continuous penalty for the identification)
+        JtJ = np.einsum("fki,fkj->fij", J, J)
+        JtJ = JtJ + 1e-9 * np.einsum("fii->fi", JtJ)[:, :, None] * np.eye(3) + 1e-18 * np.eye(3)
         with np.errstate(all="ignore"):
             try:
-                dz = -np.linalg.solve(J, r[..., None])[..., 0]
+                dz = -np.linalg.solve(JtJ, np.einsum("fki,fk->fi", J, r)[..., None])[..., 0]
             except np.linalg.LinAlgError:
                 dz = -np.einsum("fij,fj->fi", np.linalg.pinv(J), r)
         dz = np.where(np.isfinite(dz), dz, 0.0)
@@ -346,7 +350,8 @@ def static_equilibrium(element: FootElement, params: FootParameters | np.ndarray
 
 def fit_foot_parameters(element: FootElement, ankle: np.ndarray, angle: np.ndarray, force: np.ndarray,
                         moment: np.ndarray, ground: np.ndarray, x0: FootParameters, *,
-                        weights: tuple[float, float] = (1.0, 1.0), bounds: tuple | None = None) -> FootFit:
+                        weights: tuple[float, float] = (1.0, 1.0), bounds: tuple | None = None,
+                        n_starts: int = 3) -> FootFit:
     """Identify the five foot parameters by minimising eq. 25 (see module docstring).
 
     Parameters
@@ -359,6 +364,7 @@ def fit_foot_parameters(element: FootElement, ankle: np.ndarray, angle: np.ndarr
     x0 : FootParameters, start of the search
     weights : (w_r, w_p), weights of the height (1/m) and angle (1/rad) residuals
     bounds : optional (lower (5,), upper (5,)); default: k in [1, 1e5] N m/rad, lengths in [5 mm, 0.3 m]
+    n_starts : 1-3 searches, from `x0` and from `x0` with 3x and 1/3 its stiffness; the lowest cost is kept
 
     Returns
     -------
@@ -394,8 +400,15 @@ def fit_foot_parameters(element: FootElement, ankle: np.ndarray, angle: np.ndarr
         pen = _EQ_WEIGHT * np.linalg.norm(_residuals(element, x, z, *args)[0], axis=1)
         return np.concatenate([np.hypot(wr * (ankle[:, 1] - eq.height), pen), np.hypot(wp * (angle - eq.angle), pen)])
 
-    res = least_squares(fun, x0v, bounds=(lo, hi), x_scale=np.abs(x0v), diff_step=1e-6,
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100)
+    # The cost has local minima where the midfoot stiffness collapses; starting also from a third and
+    # three times the given stiffness and keeping the best reaches the global one in practice.
+    res = None
+    for k_scale in (1.0, 3.0, 1.0 / 3.0)[:max(int(n_starts), 1)]:
+        xs = np.clip(x0v * np.array([k_scale, 1, 1, 1, 1]), lo * 1.0001, hi * 0.9999)
+        r = least_squares(fun, xs, bounds=(lo, hi), x_scale=np.abs(xs), diff_step=1e-6,
+                          xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100)
+        if res is None or r.cost < res.cost:
+            res = r
     eq = static_equilibrium(element, res.x, *args, start=start)
     if eq.converged.mean() < 0.9:
         raise FitError(f"foot equilibrium not found in {int((~eq.converged).sum())} of {m} frames "
