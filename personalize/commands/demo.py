@@ -23,8 +23,9 @@ def register(app: typer.Typer) -> None:
         from ..progress import StepProgress
 
         console = Console()
-        # about 12 phantom-writing, 10 surface and 45 pipeline steps (full trials; --quick has fewer trials)
-        with StepProgress("demo", 60 if pipeline else 25, Console(stderr=True)) as prog:
+        # the phantom's 17 labels rasterised and 16 bones meshed, 16 surfaces extracted; the pipeline adds the motion
+        # trials and its own ~50 steps (an estimate: the count grows if the work outruns it)
+        with StepProgress("demo", 110 if pipeline else 52, Console(stderr=True)) as prog:
             summary = run_demo(out, seed=seed, voxel_mm=voxel, progress=prog, pipeline=pipeline, short=quick,
                                overwrite=overwrite)
         render_summary(summary, console)
