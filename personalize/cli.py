@@ -64,11 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # without standalone mode click returns (not raises) the code of typer.Exit
         rc = app(args=argv, standalone_mode=False, prog_name="personalize")
-    except InputError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        return 2
-    except FitError as exc:
-        typer.echo(f"error: {exc}", err=True)
+    except (InputError, FitError) as exc:
+        # one line, whatever a library put in the message (a parser's multi-line text)
+        typer.echo(f"error: {' '.join(str(exc).split())}", err=True)
         return 2
     except typer.Exit as exc:
         return exc.exit_code
@@ -89,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         # file-system faults the commands did not foresee: still one line naming the file
         where = exc.filename or "output"
-        typer.echo(f"error: {where}: {exc.strerror or exc}", err=True)
+        typer.echo(f"error: {where}: {' '.join(str(exc.strerror or exc).split())}", err=True)
         return 2
     except Exception as exc:  # anything unexpected
         if os.environ.get("PERSONALIZE_DEBUG"):
