@@ -54,14 +54,30 @@ def _match(ref, other, kind, side):
 
 def mocap_pig(data: Path, out: Path) -> dict:
     from kinematics.c3d import read_c3d, read_c3d_outputs
-    from kinematics.foot_contact import FootElement, FootParameters, fit_foot_parameters, sagittal_stance
+    from kinematics.errors import FitError, InputError
+    from kinematics.foot_contact import (
+        FootElement,
+        FootParameters,
+        fit_foot_parameters,
+        sagittal_stance,
+    )
     from kinematics.forceplates import assign_feet, read_force_plates
-    from kinematics.gait_cycles import (c3d_events, cycle_statistics, events_from_kinematics, events_from_plates,
-                                        gait_cycles, write_cycles_csv)
+    from kinematics.gait_cycles import (
+        c3d_events,
+        cycle_statistics,
+        events_from_kinematics,
+        events_from_plates,
+        gait_cycles,
+        write_cycles_csv,
+    )
     from kinematics.pig import plug_in_gait, static_foot_offsets
     from kinematics.pig_kinetics import ground_reactions, plug_in_gait_kinetics
     from kinematics.subject import read_vsk
-    from personalize.gait_plots import plot_foot_angle_fit, plot_gait_grid, plot_power_row
+    from personalize.gait_plots import (
+        plot_foot_angle_fit,
+        plot_gait_grid,
+        plot_power_row,
+    )
 
     path = data / "Movement_trial.c3d"
     sub = static_foot_offsets(read_c3d(data / "Static_trial.c3d"), read_vsk(data / "Test.vsk"))
@@ -137,7 +153,7 @@ def mocap_pig(data: Path, out: Path) -> dict:
         x0 = FootParameters(300.0, 0.05, 0.08, 0.06, h0)
         try:
             fit = fit_foot_parameters(element, st["ankle"], ang, st["force"], st["moment"], ground, x0)
-        except Exception as err:  # a stance the element cannot balance is reported, not hidden
+        except (FitError, InputError) as err:  # a stance the element cannot balance is reported, not hidden
             fits.append({"contact": c.describe(), "error": str(err)})
             continue
         fits.append({"contact": c.describe(), "frames": [int(loaded[0]), int(loaded[-1])],
@@ -146,7 +162,7 @@ def mocap_pig(data: Path, out: Path) -> dict:
                      "rms_angle_deg": round(float(np.degrees(fit.rms_angle)), 3),
                      "rms_height_mm": round(fit.rms_height * 1e3, 2),
                      "measured_angle_range_deg": [round(float(np.degrees(ang.min())), 2), round(float(np.degrees(ang.max())), 2)],
-                     "balanced_frames": int(fit.equilibrium.converged.sum()), "frames_used": int(len(loaded))})
+                     "balanced_frames": int(fit.equilibrium.converged.sum()), "frames_used": len(loaded)})
         pct = 100.0 * (loaded - c.start) / max(c.stop - 1 - c.start, 1)
         phases.append({"label": f"{s} foot, plate {c.plate + 1}", "percent": pct, "measured": np.degrees(ang),
                        "simulated": np.degrees(fit.equilibrium.angle)})
@@ -157,7 +173,10 @@ def mocap_pig(data: Path, out: Path) -> dict:
 
 
 def subject01_walk(data: Path) -> dict:
-    from kinematics.gait_cycles import events_from_kinematics, events_from_vertical_force
+    from kinematics.gait_cycles import (
+        events_from_kinematics,
+        events_from_vertical_force,
+    )
     from kinematics.storage import read_mot, read_trc
 
     trial = read_trc(data / "subject01_walk1.trc")

@@ -73,8 +73,18 @@ from scipy.optimize import least_squares
 
 from .errors import FitError
 
-__all__ = ["FootElement", "FootParameters", "FootEquilibrium", "FootFit", "foot_geometry", "contact_forces",
-           "spring_moment", "static_equilibrium", "fit_foot_parameters", "sagittal_stance"]
+__all__ = [
+    "FootElement",
+    "FootEquilibrium",
+    "FootFit",
+    "FootParameters",
+    "contact_forces",
+    "fit_foot_parameters",
+    "foot_geometry",
+    "sagittal_stance",
+    "spring_moment",
+    "static_equilibrium",
+]
 
 
 @dataclass(frozen=True)
@@ -140,7 +150,7 @@ class FootParameters:
         return np.array([getattr(self, n) for n in self.NAMES])
 
     @classmethod
-    def from_vector(cls, x) -> "FootParameters":
+    def from_vector(cls, x) -> FootParameters:
         return cls(*(float(v) for v in x))
 
 
@@ -427,7 +437,7 @@ def fit_foot_parameters(element: FootElement, ankle: np.ndarray, angle: np.ndarr
 
 
 def sagittal_stance(ankle_centre: np.ndarray, foot_axis: np.ndarray, grf: np.ndarray, cop: np.ndarray,
-                    up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> dict:
+                    up=(0.0, 0.0, 1.0)) -> dict:
     """Project a stance phase into the foot's sagittal plane for `fit_foot_parameters`.
 
     Parameters

@@ -29,6 +29,7 @@ cycles at each point (sd NaN with a single cycle).
 from __future__ import annotations
 
 import csv
+import itertools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,10 +39,21 @@ import numpy as np
 from .errors import InputError
 from .markers import MarkerTrial
 
-__all__ = ["GaitEvent", "GaitCycle", "CycleStatistics", "events_from_plates", "events_from_kinematics",
-           "events_from_vertical_force", "c3d_events",
-           "gait_cycles", "normalise_cycle", "cycle_statistics", "write_cycles_csv", "walking_direction",
-           "N_POINTS"]
+__all__ = [
+    "N_POINTS",
+    "CycleStatistics",
+    "GaitCycle",
+    "GaitEvent",
+    "c3d_events",
+    "cycle_statistics",
+    "events_from_kinematics",
+    "events_from_plates",
+    "events_from_vertical_force",
+    "gait_cycles",
+    "normalise_cycle",
+    "walking_direction",
+    "write_cycles_csv",
+]
 
 N_POINTS = 101
 
@@ -195,7 +207,7 @@ def walking_direction(trial: MarkerTrial, up=(0.0, 0.0, 1.0), sacrum: str | None
     rel = np.concatenate(rel)
     rel = rel[np.all(np.isfinite(rel), axis=1)]
     rel = rel - np.outer(rel @ up, up)
-    _, sv, vt = np.linalg.svd(rel - rel.mean(0), full_matrices=False)
+    _, _, vt = np.linalg.svd(rel - rel.mean(0), full_matrices=False)
     d = vt[0] - (vt[0] @ up) * up
     d /= np.linalg.norm(d)
     vel = np.concatenate([np.diff((trial.marker(heel.format(s=side)) - s) @ d) for side in "RL"
@@ -251,7 +263,7 @@ def gait_cycles(events: list[GaitEvent], side: str) -> list[GaitCycle]:
     strikes = [e for e in events if e.side == side and e.kind == "strike"]
     offs = [e for e in events if e.side == side and e.kind == "off"]
     out = []
-    for a, b in zip(strikes[:-1], strikes[1:]):
+    for a, b in itertools.pairwise(strikes):
         between = [o for o in offs if a.time < o.time < b.time]
         out.append(GaitCycle(side, a, b, between[0] if between else None))
     return out

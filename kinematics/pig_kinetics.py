@@ -58,8 +58,16 @@ from .errors import InputError
 from .markers import MarkerTrial
 from .pig import PiGResult
 
-__all__ = ["SegmentInertia", "PIG_SEGMENTS", "GroundReaction", "PiGKinetics", "angular_velocity",
-           "ground_reactions", "plug_in_gait_kinetics", "pig_components"]
+__all__ = [
+    "PIG_SEGMENTS",
+    "GroundReaction",
+    "PiGKinetics",
+    "SegmentInertia",
+    "angular_velocity",
+    "ground_reactions",
+    "pig_components",
+    "plug_in_gait_kinetics",
+]
 
 GRAVITY = np.array([0.0, 0.0, -9.81])  # m/s², C3D lab frames (Z up)
 
@@ -233,7 +241,6 @@ def plug_in_gait_kinetics(trial: MarkerTrial, pig: PiGResult, mass: float, grf: 
         raise InputError(trial.source, "feet not calibrated (run static_foot_offsets): no ankle kinetics")
     rate = trial.rate
     dt = 1.0 / rate
-    n = trial.n_frames
     notes = []
     moments, forces, powers, valid = {}, {}, {}, {}
     omegas = {"pelvis": angular_velocity(_lowpass(pig.segments["pelvis"].axes, rate, cutoff), rate)}

@@ -13,8 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SIDE_COLOURS", "ANGLE_PANELS", "MOMENT_PANELS", "plot_gait_grid", "plot_power_row",
-           "plot_foot_angle_fit"]
+__all__ = [
+    "ANGLE_PANELS",
+    "MOMENT_PANELS",
+    "SIDE_COLOURS",
+    "plot_foot_angle_fit",
+    "plot_gait_grid",
+    "plot_power_row",
+]
 
 SIDE_COLOURS = {"L": "#d62728", "R": "#2ca02c"}  # Vicon: left red, right green
 SIDE_NAMES = {"L": "left", "R": "right"}

@@ -5,8 +5,15 @@ import numpy as np
 import pytest
 
 from kinematics.errors import FitError
-from kinematics.foot_contact import (FootElement, FootParameters, fit_foot_parameters, foot_geometry,
-                                     sagittal_stance, spring_moment, static_equilibrium)
+from kinematics.foot_contact import (
+    FootElement,
+    FootParameters,
+    fit_foot_parameters,
+    foot_geometry,
+    sagittal_stance,
+    spring_moment,
+    static_equilibrium,
+)
 
 ELEMENT = FootElement()
 TRUE = FootParameters(stiffness=300.0, heel_offset=0.05, joint_offset=0.09, fore_offset=0.07, sole_depth=0.07)
@@ -31,7 +38,7 @@ def measured():
 
 
 def test_equilibrium_balances_the_ankle_wrench(measured):
-    force, moment, au, ground, eq = measured
+    force, moment, au, _, eq = measured
     # the contacts carry the whole vertical load ...
     np.testing.assert_allclose(eq.normal.sum(1), -force[:, 1], rtol=1e-9)
     # ... and their moment about the ankle cancels m_a (forces parallel to the ground reaction)

@@ -5,9 +5,19 @@ import numpy as np
 import pytest
 
 from kinematics.errors import InputError
-from kinematics.gait_cycles import (N_POINTS, GaitCycle, GaitEvent, c3d_events, cycle_statistics,
-                                    events_from_kinematics, events_from_vertical_force, gait_cycles,
-                                    normalise_cycle, walking_direction, write_cycles_csv)
+from kinematics.gait_cycles import (
+    N_POINTS,
+    GaitCycle,
+    GaitEvent,
+    c3d_events,
+    cycle_statistics,
+    events_from_kinematics,
+    events_from_vertical_force,
+    gait_cycles,
+    normalise_cycle,
+    walking_direction,
+    write_cycles_csv,
+)
 from kinematics.markers import MarkerTrial
 
 

@@ -7,8 +7,14 @@ from scipy.spatial.transform import Rotation
 
 from kinematics.markers import MarkerTrial
 from kinematics.pig import PiGResult, SegmentPose
-from kinematics.pig_kinetics import (GRAVITY, PIG_SEGMENTS, GroundReaction, angular_velocity, pig_components,
-                                     plug_in_gait_kinetics)
+from kinematics.pig_kinetics import (
+    GRAVITY,
+    PIG_SEGMENTS,
+    GroundReaction,
+    angular_velocity,
+    pig_components,
+    plug_in_gait_kinetics,
+)
 
 
 def test_angular_velocity_of_a_steady_spin():
@@ -106,7 +112,7 @@ def nexus(shared_data):
     trial = read_c3d(d / "Movement_trial.c3d")
     plates = read_force_plates(d / "Movement_trial.c3d")
     contacts = assign_feet(plates, trial)
-    grf, notes = ground_reactions(plates, contacts, trial.n_frames)
+    grf, _ = ground_reactions(plates, contacts, trial.n_frames)
     kin = plug_in_gait_kinetics(trial, plug_in_gait(trial, sub), sub.mass, grf)
     return {"plates": plates, "contacts": contacts, "grf": grf, "kin": kin,
             "out": read_c3d_outputs(d / "Movement_trial.c3d")}
