@@ -415,6 +415,7 @@ def test_6_batch_job_that_kills_its_worker(tmp_path, capsys):
     assert any("batch [2/2]" in ln for ln in lines)            # plain progress lines: stderr is not a terminal
 
 
+@pytest.mark.slow
 def test_6_batch_sigterm_and_sigint(tmp_path):
     """SIGTERM / SIGINT stop the batch: exit 143 / 130, no traceback, batch.csv kept; a rerun resumes."""
     names = ["a", "b", "c", "d"]
