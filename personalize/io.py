@@ -743,8 +743,9 @@ def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | Non
         pieces, note = split_whole_foot(mi.mesh, side, tibia=tib.mesh if tib is not None else None)
         notes.append(f"{Path(mi.source).name}: {note}")
         for b, m in pieces.items():
-            out[b] = MeshInput(name=b, mesh=m, source=mi.source, unit=mi.unit,
-                               report=dict(mi.report, whole_foot=note))
+            rep = dict(mi.report, whole_foot=note,
+                       repairs=[f"{Path(mi.source).name}: {r}" for r in mi.report.get("repairs", [])])
+            out[b] = MeshInput(name=b, mesh=m, source=mi.source, unit=mi.unit, report=rep)
     if bones is not None:
         bad = [b for b in bones if b in errors]
         if bad:

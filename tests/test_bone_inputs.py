@@ -225,3 +225,28 @@ def test_point_cloud_files_are_read_and_surfaced(shared_data, tmp_path):
     with pytest.raises(InputError, match="b.xyz: point cloud holds 50 points"):
         np.savetxt(tmp_path / "b.xyz", pts[:50])
         read_point_cloud(tmp_path / "b.xyz")
+
+
+# --------------------------------------------------------------------------- whole sets
+def _length(j, a, b):
+    return float(np.linalg.norm(np.subtract(j[a]["origin"], j[b]["origin"])))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,expected", [
+    ("MC22", {f"{j}_{s}" for j in ("hip", "knee", "ankle", "subtalar", "mtp") for s in "rl"}),
+    ("TLEM2_MRI", {f"{j}_{s}" for j in ("hip", "knee", "ankle", "subtalar", "mtp") for s in "rl"}),
+    ("VAKHUM_CT", {"hip_r", "knee_r", "ankle_r"}),        # no pelvis (hip from the femoral head), no foot
+])
+def test_real_sets_give_every_joint_their_bones_allow(shared_data, tmp_path, capsys, name, expected):
+    from personalize.commands.bones import run_bones
+
+    res = run_bones(shared_data / "bones" / name, tmp_path / "out", png=False, quiet=True)
+    joints = res["joints"]["joints"]
+    assert expected <= set(joints), (set(joints), res["joints"]["dropped"])
+    if name == "VAKHUM_CT":
+        assert set(res["joints"]["dropped"]) == {"subtalar_r", "mtp_r"}
+    else:
+        for a, b in (("hip", "knee"), ("knee", "ankle")):
+            r, l = _length(joints, f"{a}_r", f"{b}_r"), _length(joints, f"{a}_l", f"{b}_l")
+            assert abs(r / l - 1) < 0.02, (a, b, r, l)
