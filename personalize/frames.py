@@ -226,8 +226,10 @@ HEAD_MODEL_SD = 0.02
 #: model sd of each ankle estimate: centre as a fraction of the talar dome radius, axis in degrees.  The
 #: tibial plafond is the dome's concave partner (used when its radius is within 25 % above the dome's);
 #: the malleoli's midpoint and line are a coarse check (the bimalleolar line runs ~20 deg from the
-#: talocrural axis)
-ANKLE_MODEL_SD = {"talar_dome": (0.04, 1.0), "tibial_plafond": (0.2, None), "malleoli": (0.4, 12.0)}
+#: talocrural axis) and the tibial plateau's medio-lateral line (tibial torsion, normally 15-40 deg
+#: external) are checks only: they vote on agreement, not in the combined value
+ANKLE_MODEL_SD = {"talar_dome": (0.04, 1.0), "tibial_plafond": (0.2, None), "malleoli": (0.4, 12.0),
+                  "tibial_torsion": (None, 20.0)}
 
 
 def _ankle_centre(tal, tib, fib, s):
@@ -250,8 +252,13 @@ def _ankle_centre(tal, tib, fib, s):
         a, b = tib.landmarks[f"{P}MMA"], fib.landmarks[f"{P}ANK"]
         d = unit_(b.position - a.position)
         ec.append(Estimate("malleoli", on(0.5 * (a.position + b.position), d), 0.25 * (a.cov + b.cov),
-                           ANKLE_MODEL_SD["malleoli"][0] * rd))
-        eu.append(Estimate("malleoli", d, np.radians(2.0) ** 2 * np.eye(3), np.radians(ANKLE_MODEL_SD["malleoli"][1])))
+                           ANKLE_MODEL_SD["malleoli"][0] * rd, check=True))
+        eu.append(Estimate("malleoli", d, np.radians(2.0) ** 2 * np.eye(3), np.radians(ANKLE_MODEL_SD["malleoli"][1]),
+                           check=True))
+    if tib is not None and "knee_axis" in tib.axes:
+        ka = tib.axes["knee_axis"]
+        eu.append(Estimate("tibial_torsion", ka.direction, np.radians(ka.sd_deg) ** 2 * np.eye(3),
+                           np.radians(ANKLE_MODEL_SD["tibial_torsion"][1]), check=True))
     if len(ec) == 1 and len(eu) == 1:
         return ac.position, ac.cov, None, u, ax.sd_deg, None, ()
     rc = cross_check(ec, plane_normal=u)
@@ -289,17 +296,18 @@ def _radius(kind, *bones) -> float:
     return r if r is not None and np.isfinite(r) and r > 0 else _DEFAULT_RADIUS[kind]
 
 
-def _joint(name, kind, origin, cov_det, parent, child, sd_det, flags, radius, spread_cov=None, cross=None):
-    """A `Joint` whose stated uncertainty is fit + spread + model error (`MODEL_ERROR`)."""
+def _joint(name, kind, origin, cov_det, parent, child, sd_det, flags, radius, spread_cov=None, cross=None,
+           axis_spread_deg=0.0):
+    """A `Joint` whose stated uncertainty is fit + spread + model error (`MODEL_ERROR`).
+
+    ``spread_cov`` / ``axis_spread_deg``: the spread of disagreeing estimates when not already in
+    ``cov_det`` / ``sd_det`` (the knee's are: `femur` states them in its landmarks)."""
     me = MODEL_ERROR[kind]
     sd_c = me["centre"] * radius
     cov = np.asarray(cov_det, float) + sd_c ** 2 * np.eye(3)
     if spread_cov is not None:
         cov = cov + spread_cov
-    spread_deg = 0.0
-    if cross and "axis" in cross:
-        spread_deg = float(cross["axis"].get("spread_deg", 0.0))
-    sd = float(np.sqrt(float(sd_det) ** 2 + me["axis_deg"] ** 2 + spread_deg ** 2))
+    sd = float(np.sqrt(float(sd_det) ** 2 + me["axis_deg"] ** 2 + axis_spread_deg ** 2))
     ref = parent if parent.origin is not None else child
     return Joint(name, np.asarray(origin, float).copy(), 0.5 * (cov + cov.T), ref.rotation.copy(), sd, flags,
                  parent=parent, child=child, origin_cov_detection=np.asarray(cov_det, float).copy(),
@@ -429,7 +437,8 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 joints[j] = _joint(j, "ankle", ao, acov,
                                    JointFrame(f"tibia_{s}", ao.copy(), frame_zy(au, yh)),
                                    JointFrame(f"talus_{s}", ao.copy(), frame_zy(au, yt)),
-                                   asd, flags, _radius("ankle", None, tal), spread, cross)
+                                   asd, flags, _radius("ankle", None, tal), spread, cross,
+                                   float((cross or {}).get("axis", {}).get("spread_deg", 0.0)))
         # ---- subtalar
         j = f"subtalar_{s}"
         if need(j, f"talus_{s}", f"calcn_{s}"):

@@ -51,10 +51,24 @@ def test_an_outlier_is_left_out_and_its_spread_enters_the_covariance():
     assert r2.agree
 
 
-def test_no_two_agree_keeps_the_medoid():
+def test_no_two_agree_keeps_the_primary_flagged():
     es = [_est("a", [0.0, 0, 0], 1e-4, 0.0), _est("b", [0.010, 0, 0], 1e-4, 0.0), _est("c", [0.004, 0, 0], 1e-4, 0.0)]
     r = cross_check(es)
-    assert r.used == ("c",) and not r.agree
+    assert r.used == ("a",) and r.left_out == ("b", "c") and not r.agree
+    assert np.allclose(r.value, 0.0)
+    assert r.cov_spread[0, 0] == pytest.approx((0.010 ** 2 + 0.004 ** 2) / 2)
+
+
+def test_checks_vote_but_do_not_move_the_value():
+    a = _est("a", [0.0, 0, 0], 1e-4, 5e-4)
+    chk = Estimate("coarse", np.array([0.003, 0, 0]), 1e-8 * np.eye(3), 0.005, check=True)
+    r = cross_check([a, chk])
+    assert r.agree and np.allclose(r.value, 0.0)
+    # two agreeing checks cannot outvote the primary on their own
+    chk2 = Estimate("coarse2", np.array([0.050, 0, 0]), 1e-8 * np.eye(3), 0.005, check=True)
+    chk3 = Estimate("coarse3", np.array([0.051, 0, 0]), 1e-8 * np.eye(3), 0.005, check=True)
+    r = cross_check([a, chk2, chk3])
+    assert r.used == ("a",) and np.allclose(r.value, 0.0) and not r.agree
 
 
 def test_points_on_a_line_are_compared_across_it_only():
@@ -211,17 +225,25 @@ def test_both_frames_in_joints_json(real, s):
     assert turn == pytest.approx(ref_turn, abs=3.0)
 
 
-def test_hip_without_a_pelvis_from_the_femoral_head(shared_data):
-    ls = detect_landmarks(_load(shared_data / "bones" / "VAKHUM_CT"))
-    J, dropped = joints_from_landmarks(ls)
-    assert "hip_r" in J and "hip_r" not in dropped
-    doc = joints_document(J, dropped)["joints"]["hip_r"]
-    assert doc["parent"] == {"body": "pelvis", "missing": "no pelvis among the bones"}
-    assert doc["child"]["body"] == "femur_r"
-    fem = ls.bones["femur_r"]
-    assert np.allclose(doc["origin"], fem.landmarks["femoral_head_centre"].position)
-    # Y of the femur frame: knee centre -> hip centre; Z: the knee axis made orthogonal to it
-    R = np.asarray(doc["child"]["rotation"])
-    y = fem.landmarks["femoral_head_centre"].position - fem.landmarks["intercondylar_midpoint"].position
+def test_hip_without_a_pelvis_from_the_femoral_head(shared_data, tmp_path):
+    """VAKHUM-CT (femur, tibia, patella, talus): `personalize bones` gives the hip from the femoral head."""
+    from personalize.commands.bones import run_bones
+
+    out = run_bones(shared_data / "bones" / "VAKHUM_CT", tmp_path / "out", png=False, quiet=True)
+    J = out["joints"]["joints"]
+    assert set(J) == {"hip_r", "knee_r", "ankle_r"} and "hip_r" not in out["joints"]["dropped"]
+    hip = J["hip_r"]
+    assert hip["parent"] == {"body": "pelvis", "missing": "no pelvis among the bones"}
+    assert hip["child"]["body"] == "femur_r"
+    fem = out["landmarks"]["bones"]["femur_r"]["landmarks"]
+    assert np.allclose(hip["origin"], fem["femoral_head_centre"]["position"])
+    assert np.allclose(hip["rotation"], hip["child"]["rotation"])
+    # femur frame: Y from the knee centre to the hip centre, Z the knee axis made orthogonal to it
+    R = np.asarray(hip["child"]["rotation"])
+    y = np.subtract(fem["femoral_head_centre"]["position"], fem["intercondylar_midpoint"]["position"])
     assert np.degrees(np.arccos(min(1.0, R[:, 1] @ y / np.linalg.norm(y)))) < 1e-3
-    assert set(J) == {"hip_r", "knee_r", "ankle_r"}
+    # the file written is the document returned, with both frames of every joint
+    import json
+
+    doc = json.loads((tmp_path / "out" / "joints.json").read_text())
+    assert doc["joints"]["knee_r"]["child"]["body"] == "tibia_r" and "model_error" in doc["joints"]["knee_r"]

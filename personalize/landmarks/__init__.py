@@ -105,19 +105,33 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
     surf: dict[str, Surface] = {}
     sampling_notes: dict[str, str] = {}
     ls = LandmarkSet()
+    todo: dict[str, tuple[str, object]] = {}
     for key, obj in bones.items():
         name = canonical_bone_name(str(key))
         if name is None:
             ls.rejected[str(key)] = "not a recognised bone name"
             continue
-        if name in surf:
-            continue
+        if name not in todo:
+            todo[name] = (str(key), obj)
+
+    def prepare(name):
+        key, obj = todo[name]
         try:
             obj, note = even_sampling(obj, name)
-            surf[name] = as_surface(obj, name)
+            return key, as_surface(obj, name), note, None
         except InputError as exc:
-            ls.rejected[str(key)] = exc.problem
+            return key, None, None, exc.problem
+
+    # the bones' sampling and surface arrays are independent: two threads (numpy and trimesh release the GIL)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        prepared = dict(zip(todo, pool.map(prepare, list(todo))))
+    for name, (key, s_, note, problem) in prepared.items():
+        if problem is not None:
+            ls.rejected[key] = problem
             continue
+        surf[name] = s_
         if note:
             sampling_notes[name] = note
     if not surf:

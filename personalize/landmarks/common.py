@@ -241,12 +241,11 @@ def as_surface(obj, name: str = "bone") -> Surface:
     tri = V[F]
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     fa = 0.5 * np.linalg.norm(fn, axis=1)
-    areas = np.zeros(len(V))
-    for k in range(3):
-        np.add.at(areas, F[:, k], fa / 3.0)
-    vn = np.zeros_like(V)
-    for k in range(3):
-        np.add.at(vn, F[:, k], fn)  # area-weighted (|fn| = 2 area)
+    # per-vertex sums over the incident faces (bincount: an order of magnitude faster than np.add.at)
+    idx = F.ravel()
+    areas = np.bincount(idx, weights=np.repeat(fa / 3.0, 3), minlength=len(V))
+    fn3 = np.repeat(fn, 3, axis=0)              # area-weighted (|fn| = 2 area)
+    vn = np.column_stack([np.bincount(idx, weights=fn3[:, c], minlength=len(V)) for c in range(3)])
     nn = np.linalg.norm(vn, axis=1)
     ok = nn > 0
     vn[ok] /= nn[ok][:, None]
@@ -313,7 +312,7 @@ def hough_centres(points, normals, radii, *, inward: bool, tol: float, n_peaks: 
     R = np.repeat(np.asarray(radii, float), len(P))
     if len(C) == 0:
         return []
-    support = cKDTree(C).query_ball_point(C, tol, return_length=True).astype(float)
+    support = cKDTree(C).query_ball_point(C, tol, return_length=True, workers=-1).astype(float)
     peaks = []
     alive = np.ones(len(C), bool)
     for _ in range(n_peaks):

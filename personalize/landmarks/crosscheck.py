@@ -20,11 +20,12 @@ Agreement of a pair :math:`(i, j)`:
 ``df`` the dimension of the compared subspace, :math:`\alpha` = `ALPHA`.
 
 Rule on disagreement (robust, documented): the estimates kept are the
-largest set that agree pairwise; among sets of equal size the one holding
+largest set that agree pairwise and hold at least one estimate that is not
+a mere check (`Estimate.check`); among sets of equal size the one holding
 the primary estimate (the first), then the one of smallest total
-:math:`\chi^2`.  When no two estimates agree the medoid (smallest summed
-:math:`\chi^2` to the others) is kept alone.  The result is the
-precision-weighted mean of the kept estimates,
+:math:`\chi^2`.  When no such pair agrees the primary is kept alone.  The
+result is the precision-weighted mean of the kept estimates that are not
+checks,
 
 .. math::
 
@@ -56,13 +57,16 @@ class Estimate:
     """One surface's estimate of a joint centre (m) or axis (unit vector).
 
     ``cov``: fit covariance (3, 3), m² (rad² for directions);
-    ``model_sd``: isotropic model standard deviation, m (rad for directions).
+    ``model_sd``: isotropic model standard deviation, m (rad for directions);
+    ``check``: a coarse construction (epicondyles, malleoli, tibial torsion)
+    that takes part in the agreement test but not in the combined value.
     """
 
     source: str
     value: np.ndarray
     cov: np.ndarray
     model_sd: float
+    check: bool = False
 
 
 @dataclass(frozen=True)
@@ -140,23 +144,24 @@ def cross_check(estimates: list[Estimate], plane_normal=None, alpha: float = ALP
         d = X[i] - X[j]
         c2[i, j] = c2[j, i] = float(d @ _pinv(S[i] + S[j], P) @ d)
     ok = c2 < lim
+    check = [e.check for e in estimates]
     best = None
     for size in range(m, 1, -1):
         for sub in combinations(range(m), size):
+            if all(check[k] for k in sub):
+                continue
             if all(ok[i, j] for i, j in combinations(sub, 2)):
                 key = (0 not in sub, sum(c2[i, j] for i, j in combinations(sub, 2)))
                 if best is None or key < best[0]:
                     best = (key, sub)
         if best is not None:
             break
-    if best is None:
-        keep = (int(np.argmin(c2.sum(axis=1))),) if m > 1 else (0,)
-    else:
-        keep = best[1]
-    W = [_pinv(S[k], P) for k in keep]
+    keep = (0,) if best is None else best[1]
+    comb = [k for k in keep if not check[k]] or [0]
+    W = [_pinv(S[k], P) for k in comb]
     A = np.linalg.pinv(sum(W), rcond=1e-10, hermitian=True)
-    xh = x0 + A @ sum(w @ (X[k] - x0) for w, k in zip(W, keep))
-    cov_fit = A @ sum(w @ C[k] @ w for w, k in zip(W, keep)) @ A
+    xh = x0 + A @ sum(w @ (X[k] - x0) for w, k in zip(W, comb))
+    cov_fit = A @ sum(w @ C[k] @ w for w, k in zip(W, comb)) @ A
     if plane_normal is not None:                       # along the line: the primary's
         cov_fit = cov_fit + float(n @ estimates[0].cov @ n) * np.outer(n, n)
     out = [k for k in range(m) if k not in keep]
@@ -185,8 +190,20 @@ def cross_check_directions(estimates: list[Estimate], alpha: float = ALPHA) -> C
     for e in estimates:
         v = np.asarray(e.value, float) / np.linalg.norm(e.value)
         v = v if v @ u0 >= 0 else -v
-        es.append(Estimate(e.source, u0 + (P @ v) / max(float(v @ u0), 1e-6), P @ e.cov @ P, e.model_sd))
+        es.append(Estimate(e.source, u0 + (P @ v) / max(float(v @ u0), 1e-6), P @ e.cov @ P, e.model_sd, e.check))
     r = cross_check(es, plane_normal=u0, alpha=alpha)
     v = r.value / np.linalg.norm(r.value)
-    return CrossCheck(value=v, cov_fit=P @ r.cov_fit @ P, cov_spread=r.cov_spread, used=r.used, left_out=r.left_out,
-                      chi2=r.chi2, spread=r.spread, offsets=r.offsets)
+    # offsets and spread as angles (the tangent-plane distance is tan(angle), unbounded near 90 deg)
+    ang = {}
+    for e in es:
+        w = e.value / np.linalg.norm(e.value)
+        ang[e.source] = float(np.arccos(np.clip(w @ v, -1.0, 1.0)))
+    Pv = np.eye(3) - np.outer(v, v)
+    spread = np.zeros((3, 3))
+    for e in es:
+        if e.source in r.left_out:
+            t = Pv @ (e.value / np.linalg.norm(e.value))
+            t = t / max(np.linalg.norm(t), 1e-12)
+            spread += ang[e.source] ** 2 * np.outer(t, t) / len(r.left_out)
+    return CrossCheck(value=v, cov_fit=P @ r.cov_fit @ P, cov_spread=spread, used=r.used, left_out=r.left_out,
+                      chi2=r.chi2, spread=max((ang[k] for k in r.left_out), default=0.0), offsets=ang)

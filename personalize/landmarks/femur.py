@@ -461,7 +461,7 @@ def _knee_cross_check(surface, res, cond_region, ax, mid, mid_cov, cyl_fit, sd, 
     Estimates (first = primary): the posterior-condyle cylinder (normals in
     the posterior arc), the posterior-arc cylinder (points lying in it too),
     the line through spheres fitted to each condyle's posterior arc, and the
-    epicondylar line.  The centre is compared across the primary axis; its
+    epicondylar line (a check only: it votes on agreement, not in the mean).  The centre is compared across the primary axis; its
     model sd is `KNEE_MODEL_SD` x the condyle sphere radius.  Returns the
     combined axis, centre and covariance (fit + spread of left-out estimates).
     """
@@ -473,11 +473,11 @@ def _knee_cross_check(surface, res, cond_region, ax, mid, mid_cov, cyl_fit, sd, 
     V, Nrm = surface.vertices, surface.normals
     est_c, est_u = [], []
 
-    def add(name, point, cov, direction, sd_deg):
+    def add(name, point, cov, direction, sd_deg, check=False):
         kc, ka = KNEE_MODEL_SD[name]
-        est_c.append(Estimate(name, np.asarray(point, float), np.asarray(cov, float), kc * r_cond))
+        est_c.append(Estimate(name, np.asarray(point, float), np.asarray(cov, float), kc * r_cond, check))
         d = orient(unit(np.asarray(direction, float)), u0)
-        est_u.append(Estimate(name, d, np.radians(sd_deg) ** 2 * np.eye(3), np.radians(ka)))
+        est_u.append(Estimate(name, d, np.radians(sd_deg) ** 2 * np.eye(3), np.radians(ka), check))
 
     def on_line(p, u):                            # the line's point across from the primary centre
         p = np.asarray(p, float)
@@ -523,7 +523,7 @@ def _knee_cross_check(surface, res, cond_region, ax, mid, mid_cov, cyl_fit, sd, 
                                / max(np.linalg.norm(b_ - a_), 1e-3)))
         add("posterior_arc_spheres", on_line(0.5 * (a_ + b_), line), cov, line, sdd)
     add("epicondyles", on_line(0.5 * (epi_med + epi_lat), unit(epi_lat - epi_med)), _iso(noise, 0.002),
-        epi_lat - epi_med, 2.0)
+        epi_lat - epi_med, 2.0, check=True)
     rc = cross_check(est_c, plane_normal=u0)
     ru = cross_check_directions(est_u)
     u = ru.value
