@@ -108,7 +108,7 @@ def mocap_pig(data: Path, out: Path) -> dict:
             e = np.nanmean(np.abs(a - b), 0) / (np.nanmax(b, 0) - np.nanmin(b, 0)) * 100
             p, q = kin.power_per_kg(joint + sfx)[st], nexus[f"{s}{name}Power"][st, 2]
             cmp[joint + sfx] = {"moment_err_pct_of_range_xyz": [round(float(v), 2) for v in e],
-                                "power_err_pct_of_range": round(float(np.nanmean(np.abs(p - q)) / np.ptp(q) * 100), 2),
+                                "power_err_pct_of_range": round(float(np.nanmean(np.abs(p - q)) / (np.nanmax(q) - np.nanmin(q)) * 100), 2),
                                 "stance_frames": [int(np.flatnonzero(st)[0]), int(np.flatnonzero(st)[-1])]}
     res["pig_kinetics_vs_nexus"] = cmp
 
