@@ -424,6 +424,9 @@ def _load_mesh_file(path: Path) -> tuple[trimesh.Trimesh, dict]:
         raise InputError(path, "file holds no triangle faces")
     if not np.all(np.isfinite(loaded.vertices)):
         raise InputError(path, "mesh has non-finite vertex coordinates")
+    fi = np.asarray(loaded.faces)
+    if fi.ndim != 2 or fi.shape[1] != 3 or fi.min() < 0 or fi.max() >= len(loaded.vertices):
+        raise InputError(path, f"corrupt mesh: face corner indices outside its {len(loaded.vertices)} vertices")
     v, f, rep = _weld(loaded.vertices, loaded.faces)
     if len(f) == 0:
         raise InputError(path, "file holds no triangle faces with three distinct corners")
