@@ -192,9 +192,13 @@ def read_trc(path: str | os.PathLike) -> MarkerTrial:
         far = np.abs(positions) > MAX_COORDINATE_M
     if far.any():
         f, m, _ = (int(v[0]) for v in np.nonzero(far))
+        top = float(np.nanmax(np.abs(positions[np.isfinite(positions)])))
+        hint = "corrupt value or wrong Units"
+        if units != "mm" and top / scale * 1e-3 <= MAX_COORDINATE_M:
+            hint = f"the coordinates look like millimetres (header Units={units}): fix the Units line of the TRC header"
         raise InputError(path, f"line {line_nos[f]}: marker {names[m]} is "
                                f"{float(np.nanmax(np.abs(positions[f, m]))):.3g} m from the lab origin (bound "
-                               f"{MAX_COORDINATE_M:g} m): corrupt value or wrong Units")
+                               f"{MAX_COORDINATE_M:g} m): {hint}")
     # A gap is a whole missing marker: a partially empty triplet is also a gap.
     partial = np.isnan(positions).any(axis=2)
     positions[partial] = np.nan
