@@ -61,20 +61,6 @@ def test_merging_a_zero_length_edge_drops_its_two_faces(tmp_path):
     assert got.volume == pytest.approx(s.volume, rel=1e-6)  # float32 PLY
 
 
-@pytest.mark.slow
-def test_phantom_meshes_are_read_without_non_manifold_edges(tmp_path):
-    from phantoms.anatomy import make_phantom
-    from phantoms.imaging import write_ply_mm
-
-    ph = make_phantom(seed=0)
-    write_ply_mm(tmp_path / "tibia_l.ply", ph.mesh("tibia_l"), "units mm")
-    meshes, rep = read_mesh_folder_detailed(tmp_path)
-    got = meshes["tibia_l"]
-    assert rep["rejected"] == {} and got.mesh.is_watertight
-    assert got.report["collapsed_faces_removed"] == 4
-    assert any("collapsed" in r for r in got.report["repairs"])
-
-
 def test_lhdl_ct_calcaneus_repaired_and_lab_names(shared_data, tmp_path):
     lhdl = shared_data / "bones" / "LHDL_CT"
     meshes, rep = read_mesh_folder_detailed(lhdl, bones=["calcn_r", "tibia_r"])
@@ -250,3 +236,30 @@ def test_real_sets_give_every_joint_their_bones_allow(shared_data, tmp_path, cap
         for a, b in (("hip", "knee"), ("knee", "ankle")):
             r, l = _length(joints, f"{a}_r", f"{b}_r"), _length(joints, f"{a}_l", f"{b}_l")
             assert abs(r / l - 1) < 0.02, (a, b, r, l)
+
+
+@pytest.mark.slow
+def test_icl_bones_as_point_clouds(shared_data, tmp_path):
+    """ICL_MRI given as point clouds (a random 20 % of each mesh's vertices): the hip, knee and ankle are
+    built and lie within 3 stated sd of the mesh result (measured 0.2-0.5 mm, 0.2-1.2 deg).  The issue's 0.5 mm / 0.5 deg is
+    NOT met yet; subtalar (1.5-4 mm) and mtp (~20 mm) are further off: the calcaneus cloud holds several
+    bones whose gaps the occupancy closing fills, so 16-20 % of its normals point in."""
+    from personalize.commands.bones import run_bones
+
+    icl = shared_data / "bones" / "ICL_MRI"
+    d = tmp_path / "clouds"
+    d.mkdir()
+    for i, b in enumerate(("pelvis_no_sacrum", "femur_r", "tibia_r", "fibula_r", "patella_r", "talus_r",
+                           "calcn_r", "toes_r")):
+        _, pts = _cloud(icl / f"{b}.ply", 0.2, seed=i)
+        trimesh.PointCloud(pts).export(str(d / f"{b}.ply"))
+    mesh = run_bones(icl, tmp_path / "mesh", png=False, quiet=True)["joints"]["joints"]
+    cloud = run_bones(d, tmp_path / "cloud", png=False, quiet=True)["joints"]["joints"]
+    assert {"hip_r", "knee_r", "ankle_r"} <= set(cloud) and set(mesh) == {f"{j}_r" for j in
+                                                                         ("hip", "knee", "ankle", "subtalar", "mtp")}
+    for j in ("hip_r", "knee_r", "ankle_r"):
+        a, b = mesh[j], cloud[j]
+        dist = np.linalg.norm(np.subtract(a["origin"], b["origin"]))
+        sd = np.sqrt(np.trace(np.add(a["origin_cov"], b["origin_cov"])) / 3)
+        ang = np.degrees(np.arccos(np.clip(np.array(a["rotation"])[:, 2] @ np.array(b["rotation"])[:, 2], -1, 1)))
+        assert dist < 3 * sd and ang < 3 * np.hypot(a["axis_sd_deg"], b["axis_sd_deg"]), (j, dist, sd, ang)

@@ -58,7 +58,8 @@ def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: 
         if not surfaces:
             raise InputError(input, "no recognisable bone surfaces")
         prog.update(task, completed=0, description="detecting landmarks")
-        ls = detect_landmarks(surfaces, progress=tick, trust_names=trust_names)
+        ls = detect_landmarks(surfaces, progress=tick, trust_names=True)
+    _check_names(ls, surfaces, trust_names)
     add_sampling_uncertainty(ls, surfaces)
     joints, dropped = joints_from_landmarks(ls)
     rejected = dict(getattr(surfaces, "rejected", {}))
@@ -94,6 +95,26 @@ def run_bones(input: Path, out: Path, *, label_map: Optional[Path] = None, png: 
                       + (f" ({n_low} low-confidence bone(s), see flags)" if n_low else "")
                       + (f"; dropped: {', '.join(sorted(dropped))}" if dropped else ""))
     return {"landmarks": lm_json, "joints": j_json}
+
+
+def _check_names(ls, surfaces, trust_names: bool) -> None:
+    """Refuse (unless `trust_names`) a bone whose shape says it is another bone or the other side.
+
+    Bones reconstructed from point clouds are only flagged: the smoothed
+    surface can round an articular end enough to pass for a femoral head (the
+    ICL tibia sampled at 20-50 % of its vertices does), so their shape is no
+    proof against the name.
+    """
+    from ..landmarks import LandmarkSet, name_problems
+    from ..landmarks import _refuse_names as refuse
+
+    cloud = {b for b, s in surfaces.items() if s.report.get("input") == "point cloud"}
+    for b, why in name_problems(ls).items():
+        if b in cloud:
+            ls.bones[b].notes.append(f"{b}: not refused ({why}): its surface is reconstructed from points; "
+                                     "check the name")
+    if not trust_names:
+        refuse(LandmarkSet(bones={k: v for k, v in ls.bones.items() if k not in cloud}), surfaces)
 
 
 def register(app: typer.Typer) -> None:
