@@ -116,7 +116,7 @@ def trial_benchmark(d: Path, repeat: int) -> dict:
     import opensim
 
     from kinematics.external_loads import read_external_loads
-    from kinematics.inverse_dynamics import coordinate_kinds, trial_inverse_dynamics
+    from kinematics.inverse_dynamics import trial_inverse_dynamics
     from kinematics.opensim_io import load_osim
     from kinematics.storage import read_mot, read_sto
     from kinematics.transmission import TransmissionChain
@@ -124,7 +124,7 @@ def trial_benchmark(d: Path, repeat: int) -> dict:
     model_path, ik, grf, xml = (d / n for n in ("subject01_simbody.osim", "subject01_walk1_ik.mot",
                                                   "subject01_walk1_grf.mot", "subject01_walk1_grf.xml"))
     model = load_osim(model_path)
-    rot = [c for c, k in zip(model.coordinate_names, coordinate_kinds(model)) if k == "rotational"]
+    rot = [c for c, k in zip(model.coordinate_names, tuple(c.kind for c in model.coordinates)) if k == "rotational"]
 
     def engine(t0, t1):
         tab = read_mot(ik).to_radians(rot)

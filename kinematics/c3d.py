@@ -59,7 +59,13 @@ def _param(group: dict, name: str, default=None):
         return default
 
 
-def _open(path) -> "object":
+def open_c3d(path) -> "object":
+    """The ezc3d object of a C3D file, or a one-line `InputError`.
+
+    Guards every reader of C3D files: the parameter section is walked first, the file is
+    read once in a forked child (a corrupt file can crash ezc3d), and the frame count must
+    agree with the header (a truncated file is refused).
+    """
     import ezc3d
 
     p = Path(path)
@@ -317,7 +323,7 @@ def read_c3d(path: str | os.PathLike, *, keep_unlabelled: bool = False, subject:
         without `subject`, non-finite valid samples, coordinates beyond
         `MAX_COORDINATE_M`.
     """
-    c3d = _open(path)
+    c3d = open_c3d(path)
     try:
         return _trial_from_c3d(c3d, path, keep_unlabelled, subject)
     except InputError:
@@ -410,7 +416,7 @@ def read_c3d_outputs(path: str | os.PathLike) -> C3DOutputs:
     Angles are returned in radians, moments in N m: the file's ``*_UNITS``
     parameters are honoured and an unknown unit is an `InputError`.
     """
-    c3d = _open(path)
+    c3d = open_c3d(path)
     try:
         return _outputs_from_c3d(c3d, path)
     except InputError:

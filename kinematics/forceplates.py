@@ -69,6 +69,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .c3d import open_c3d
 from .errors import InputError
 
 __all__ = ["FOOT_MARKERS", "ForcePlate", "ForcePlates", "PlateContact", "assign_feet", "box_average",
@@ -349,8 +350,6 @@ def read_force_plates(path: str | os.PathLike, *, threshold: float = DEFAULT_THR
         calibration matrix, unknown units, an ANALOG:RATE inconsistent with the
         stored samples.
     """
-    import ezc3d
-
     p = Path(path)
     if not p.is_file():
         raise InputError(path, "C3D file not found")
@@ -358,10 +357,7 @@ def read_force_plates(path: str | os.PathLike, *, threshold: float = DEFAULT_THR
         raise InputError("zero", f"must be 'auto', 'start' or 'none', got {zero!r}")
     if at not in ("points", "analog"):
         raise InputError("at", f"must be 'points' or 'analog', got {at!r}")
-    try:
-        c3d = ezc3d.c3d(os.fspath(p))
-    except Exception as exc:  # noqa: BLE001 - ezc3d raises bare RuntimeError/IOError for corrupt files
-        raise InputError(path, f"not a readable C3D file ({exc})") from None
+    c3d = open_c3d(p)
     params = c3d["parameters"]
     point = params["POINT"]
     point_rate = float(np.ravel(_param(point, "RATE", [0.0]))[0])

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .c3d import open_c3d
 from .errors import InputError
 from .markers import MarkerTrial
 
@@ -151,9 +152,7 @@ def c3d_events(path: str | os.PathLike, first_frame_time: float = 0.0) -> list[G
     (2, n) minutes and seconds from the start of the capture; `first_frame_time` (s) is subtracted
     (the trial's first frame / POINT:RATE) and the frame is the nearest marker frame.
     """
-    import ezc3d
-
-    c = ezc3d.c3d(os.fspath(path))
+    c = open_c3d(path)
     grp = c["parameters"].get("EVENT", {})
     rate = float(np.ravel(c["parameters"]["POINT"]["RATE"]["value"])[0])
     used = int(np.ravel(grp.get("USED", {}).get("value", [0]) or [0])[0])

@@ -43,7 +43,7 @@ from .filtering import DEFAULT_CUTOFF_HZ, _opensim_lowpass, lowpass
 from .model import Model
 from .transmission import AppliedLoad, TransmissionChain
 
-__all__ = ["InverseDynamicsResult", "TrialLoads", "coordinate_kinds", "lab_to_ground", "loads_from_c3d", "trial_inverse_dynamics", "write_inverse_dynamics",
+__all__ = ["InverseDynamicsResult", "TrialLoads", "lab_to_ground", "loads_from_c3d", "trial_inverse_dynamics", "write_inverse_dynamics",
            "write_joint_powers"]
 
 
@@ -101,31 +101,6 @@ class InverseDynamicsResult:
             if name in (c, lab):
                 return self.tau[:, i]
         raise KeyError(name)
-
-
-def coordinate_kinds(model: Model) -> tuple[str, ...]:
-    """``rotational`` / ``translational`` per coordinate, from the joints' axes.
-
-    A coordinate that drives only translation axes of a CustomJoint is
-    translational even when the model reader called it rotational (OpenSim
-    reports such coordinates as "Coupled" when their axis function is not the
-    identity, e.g. gait2392's pelvis translations).
-    """
-    trans, rot = set(), set()
-    for j in model.joints:
-        for ax in getattr(j, "translations", ()) or ():
-            trans.update(ax.coordinates)
-        for ax in getattr(j, "rotations", ()) or ():
-            rot.update(ax.coordinates)
-    out = []
-    for c in model.coordinates:
-        if c.name in trans and c.name not in rot:
-            out.append("translational")
-        elif c.name in rot and c.name not in trans:
-            out.append("rotational")
-        else:
-            out.append(c.kind if c.kind in ("rotational", "translational") else "rotational")
-    return tuple(out)
 
 
 def _interp_cubic(t_data, values, t, margin: int = 60):
@@ -276,7 +251,7 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
         if bad.any():
             tau[bad] = np.nan
             notes.append(f"{int(bad.sum())} frames {t0:.3f}-{t1:.3f} s not computed: {why}")
-    return InverseDynamicsResult(tuple(model.coordinate_names), coordinate_kinds(model), t, qf, qd, qdd, tau,
+    return InverseDynamicsResult(tuple(model.coordinate_names), tuple(c.kind for c in model.coordinates), t, qf, qd, qdd, tau,
                                  tau * qd, model.total_mass, tuple(bodies), tuple(notes))
 
 

@@ -205,11 +205,13 @@ def function_from_opensim(osim, f, where: str, source) -> Function:
 _vec, _transform, _function = vec_from_opensim, transform_from_opensim, function_from_opensim
 
 
-def _coordinate(c) -> Coordinate:
+def _coordinate(c, translational_only: frozenset = frozenset()) -> Coordinate:
     mt = c.getMotionType()
     kind = {1: "rotational", 2: "translational", 3: "coupled"}.get(int(mt), "rotational")
     if kind == "coupled":
-        kind = "rotational"
+        # OpenSim calls a coordinate "Coupled" when its axis function is not the identity
+        # (gait2392's pelvis translations): its kind is that of the axes it drives
+        kind = "translational" if c.getName() in translational_only else "rotational"
     return Coordinate(c.getName(), kind, c.getDefaultValue(), (c.getRangeMin(), c.getRangeMax()),
                       bool(c.getDefaultLocked()), bool(c.getDefaultClamped()))
 
@@ -269,7 +271,6 @@ def from_opensim(om, source=None) -> Model:
         co = transform_from_opensim(cf.findTransformInBaseFrame())
         jc = [j.get_coordinates(k) for k in range(j.numCoordinates())]
         cnames = tuple(c.getName() for c in jc)
-        coords.extend(_coordinate(c) for c in jc)
         if cls == "CustomJoint":
             st = osim.CustomJoint.safeDownCast(j).getSpatialTransform()
             axes = []
@@ -284,11 +285,15 @@ def from_opensim(om, source=None) -> Model:
                 elif fn.n_inputs != len(names):
                     raise InputError(source, f"{where} {ta.getName()}: function of {fn.n_inputs} inputs on {len(names)} coordinates")
                 axes.append(TransformAxis(vec_from_opensim(ta.getAxis()), fn, names))
+            rotating = {n for ax in axes[:3] for n in ax.coordinates}
+            translating = {n for ax in axes[3:] for n in ax.coordinates}
+            coords.extend(_coordinate(c, frozenset(translating - rotating)) for c in jc)
             joints.append(CustomJoint(j.getName(), base_name(pf), base_name(cf), cnames, po, co,
                                       rotations=tuple(axes[:3]), translations=tuple(axes[3:]), kind_name="custom"))
         elif cls in _STANDARD:
             rot, tr = _STANDARD[cls]
             nr = len(rot)
+            coords.extend(_coordinate(c, frozenset(cnames[nr:])) for c in jc)
             rots = tuple(TransformAxis(a, Linear(1.0, 0.0), (cnames[k],)) for k, a in enumerate(rot))
             trs = tuple(TransformAxis(a, Linear(1.0, 0.0), (cnames[nr + k],)) for k, a in enumerate(tr))
             joints.append(CustomJoint(j.getName(), base_name(pf), base_name(cf), cnames, po, co,

@@ -13,13 +13,12 @@ LEG_JOINTS = ("hip_flexion", "hip_adduction", "hip_rotation", "knee_angle", "ank
 @pytest.fixture(scope="module")
 def trial(shared_data):
     from kinematics.external_loads import read_external_loads
-    from kinematics.inverse_dynamics import coordinate_kinds
     from kinematics.opensim_io import load_osim
     from kinematics.storage import read_mot
 
     d = shared_data / GAIT
     model = load_osim(d / "subject01_simbody.osim")
-    kinds = coordinate_kinds(model)
+    kinds = tuple(c.kind for c in model.coordinates)
     tab = read_mot(d / "subject01_walk1_ik.mot").to_radians(
         [c for c, k in zip(model.coordinate_names, kinds) if k == "rotational"])
     loads = read_external_loads(d / "subject01_walk1_grf.xml", d / "subject01_walk1_grf.mot")
@@ -45,11 +44,10 @@ def _rel_rms(res, table):
 
 def test_loads_read_and_pelvis_translations(trial):
     model, tab, loads = trial
-    from kinematics.inverse_dynamics import coordinate_kinds
 
     assert [ld.body for ld in loads] == ["calcn_r", "calcn_l"]
     assert loads[0].force.shape == (1501, 3) and loads[0].force[:, 1].max() > 700  # N, Y up
-    kinds = coordinate_kinds(model)
+    kinds = tuple(c.kind for c in model.coordinates)
     assert [c for c, k in zip(model.coordinate_names, kinds) if k == "translational"] == ["pelvis_tx", "pelvis_ty", "pelvis_tz"]
     assert tab.time[0] == 0.5  # this IK result starts at 0.5 s
 

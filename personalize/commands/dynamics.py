@@ -86,7 +86,7 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
     from rich.console import Console
 
     from kinematics.external_loads import read_external_loads, write_external_loads
-    from kinematics.inverse_dynamics import (coordinate_kinds, loads_from_c3d, trial_inverse_dynamics,
+    from kinematics.inverse_dynamics import (loads_from_c3d, trial_inverse_dynamics,
                                              write_inverse_dynamics, write_joint_powers)
     from kinematics.opensim_io import load_osim
     from kinematics.storage import read_mot, write_sto
@@ -112,7 +112,7 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
             raise InputError(p, "file not found")
     check_output_dir(out, inputs=inputs, overwrite=overwrite)
     model = load_osim(model_path)
-    kinds = coordinate_kinds(model)
+    kinds = tuple(c.kind for c in model.coordinates)
     tab = read_mot(kinematics).to_radians([c for c, k in zip(model.coordinate_names, kinds) if k == "rotational"])
     q = tab.select(model.coordinate_names)
     notes: list[str] = []
