@@ -277,6 +277,21 @@ def orient_(v, ref) -> np.ndarray:
     return v if float(np.dot(v, ref)) >= 0 else -np.asarray(v)
 
 
+#: largest distance (m) between a joint centre and the neighbouring bone's articular landmark (tibial
+#: plateau centre for the knee, plafond centre or medial malleolus for the ankle) in an assembled set;
+#: farther, the two bones are not articulated in the input frame (scanned or exported apart) and the joint
+#: is flagged (adult knees and ankles: 15-35 mm)
+ARTICULATION_MAX = 0.05
+
+
+def _articulation(centre, other) -> tuple[tuple, dict | None]:
+    if other is None:
+        return (), None
+    d = float(np.linalg.norm(np.asarray(centre) - np.asarray(other)))
+    info = {"distance_mm": round(d * 1e3, 2), "limit_mm": ARTICULATION_MAX * 1e3, "articulated": d <= ARTICULATION_MAX}
+    return (() if d <= ARTICULATION_MAX else ("low_confidence", "not_articulated")), info
+
+
 def _scalar(b, key):
     return float(b.scalars[key]) if b is not None and key in b.scalars else None
 
@@ -413,11 +428,16 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 else:
                     yt = tib.axes["shaft_axis"].direction
                 cross = fem.fits.get("knee_cross_check")
-                cross = {k: v for k, v in cross.items() if k in ("centre", "axis")} if cross else None
+                cross = {k: v for k, v in cross.items() if k in ("centre", "axis")} if cross else {}
+                art, info = _articulation(kc.position, tib.landmarks["plateau_centre"].position
+                                          if "plateau_centre" in tib.landmarks else None)
+                if info:
+                    cross["articulation"] = info
+                flags = _flags(fem, tib) + tuple(f for f in art if f not in _flags(fem, tib))
                 joints[j] = _joint(j, "knee", kc.position, kc.cov,
                                    JointFrame(f"femur_{s}", kc.position.copy(), frame_zy(ax.direction, yh)),
                                    JointFrame(f"tibia_{s}", kc.position.copy(), frame_zy(ax.direction, yt)),
-                                   ax.sd_deg, _flags(fem, tib), _radius("knee", fem), None, cross)
+                                   ax.sd_deg, flags, _radius("knee", fem), None, cross or None)
         # ---- ankle
         j = f"ankle_{s}"
         if need(j, f"tibia_{s}", f"talus_{s}"):
@@ -433,7 +453,12 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 else:
                     yh = tib.axes["shaft_axis"].direction
                 yt = tal.frames["anatomical"]["rotation"][:, 1] if "anatomical" in tal.frames else yh
-                flags = _flags(tib, tal) + tuple(f for f in fl if f not in _flags(tib, tal))
+                lm = tib.landmarks.get("plafond_centre") or tib.landmarks.get(f"{s.upper()}MMA")
+                art, info = _articulation(ao, lm.position if lm is not None else None)
+                if info:
+                    cross = dict(cross or {}, articulation=info)
+                flags = _flags(tib, tal) + tuple(f for f in fl + art if f not in _flags(tib, tal))
+                flags = tuple(dict.fromkeys(flags))
                 joints[j] = _joint(j, "ankle", ao, acov,
                                    JointFrame(f"tibia_{s}", ao.copy(), frame_zy(au, yh)),
                                    JointFrame(f"talus_{s}", ao.copy(), frame_zy(au, yt)),

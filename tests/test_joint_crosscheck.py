@@ -69,6 +69,11 @@ def test_checks_vote_but_do_not_move_the_value():
     chk3 = Estimate("coarse3", np.array([0.051, 0, 0]), 1e-8 * np.eye(3), 0.005, check=True)
     r = cross_check([a, chk2, chk3])
     assert r.used == ("a",) and np.allclose(r.value, 0.0) and not r.agree
+    assert r.cov_spread[0, 0] > 0.04 ** 2
+    # against two agreeing estimates a disagreeing check is outweighed: left out, not counted
+    b = _est("b", [0.0002, 0, 0], 1e-4, 5e-4)
+    r = cross_check([a, b, chk2])
+    assert r.left_out == ("coarse2",) and r.disagreeing == () and r.agree and np.allclose(r.cov_spread, 0.0)
 
 
 def test_points_on_a_line_are_compared_across_it_only():

@@ -36,7 +36,9 @@ with the fit covariance :math:`A (\sum_k W_k C_k W_k) A`
 out the result is flagged low-confidence and the spread of the left-out
 estimates about :math:`\hat x`, :math:`\frac1m \sum_{r} (x_r - \hat x)(x_r - \hat x)^T`,
 is added to the stated covariance: the surfaces disagree, so the joint is
-known no better than that.
+known no better than that.  A left-out check is not counted when two
+non-check estimates agree (it is outweighed), only when it stood against a
+lone estimate.
 """
 from __future__ import annotations
 
@@ -75,9 +77,11 @@ class CrossCheck:
 
     ``value`` (3,); ``cov_fit`` the fit covariance of the combination;
     ``cov_spread`` the spread of the left-out estimates (zero when all agree);
-    ``used`` / ``left_out`` source names; ``chi2`` per pair; ``spread`` the
-    largest distance of a left-out estimate from ``value`` (m, or rad for
-    directions; 0 when all agree); ``offsets`` every estimate's distance from it.
+    ``used`` / ``left_out`` source names; ``disagreeing`` the left-out ones
+    that count (all but checks outweighed by two agreeing estimates);
+    ``chi2`` per pair; ``spread`` the largest distance of a counted estimate
+    from ``value`` (m, or rad for directions; 0 when all agree); ``offsets``
+    every estimate's distance from it.
     """
 
     value: np.ndarray
@@ -88,15 +92,18 @@ class CrossCheck:
     chi2: dict = field(default_factory=dict)
     spread: float = 0.0
     offsets: dict = field(default_factory=dict)
+    disagreeing: tuple = ()
 
     @property
     def agree(self) -> bool:
-        return not self.left_out
+        """No counted disagreement (a check left out against two agreeing estimates is not counted)."""
+        return not self.disagreeing
 
     def to_json(self, unit: str = "m") -> dict:
         k = 1e3 if unit == "m" else float(np.degrees(1.0))
         u = "mm" if unit == "m" else "deg"
-        return {"used": list(self.used), "left_out": list(self.left_out), "agree": self.agree,
+        return {"used": list(self.used), "left_out": list(self.left_out), "disagreeing": list(self.disagreeing),
+                "agree": self.agree,
                 f"spread_{u}": round(self.spread * k, 4),
                 f"offsets_{u}": {s: round(v * k, 4) for s, v in self.offsets.items()},
                 "chi2": {f"{a}|{b}": round(float(c), 3) for (a, b), c in self.chi2.items()},
@@ -165,14 +172,18 @@ def cross_check(estimates: list[Estimate], plane_normal=None, alpha: float = ALP
     if plane_normal is not None:                       # along the line: the primary's
         cov_fit = cov_fit + float(n @ estimates[0].cov @ n) * np.outer(n, n)
     out = [k for k in range(m) if k not in keep]
+    # a left-out check counts only when it stood against a lone estimate: two agreeing surfaces outweigh it
+    real_kept = sum(not check[k] for k in keep)
+    counted = [r for r in out if not check[r] or real_kept < 2]
     spread = np.zeros((3, 3))
-    for r in out:
-        spread += np.outer(X[r] - xh, X[r] - xh) / len(out)
+    for r in counted:
+        spread += np.outer(X[r] - xh, X[r] - xh) / len(counted)
     offs = {names[k]: float(np.linalg.norm(X[k] - xh)) for k in range(m)}
     return CrossCheck(value=xh, cov_fit=0.5 * (cov_fit + cov_fit.T), cov_spread=spread,
                       used=tuple(names[k] for k in keep), left_out=tuple(names[k] for k in out),
                       chi2={(names[i], names[j]): c2[i, j] for i, j in combinations(range(m), 2)},
-                      spread=max((offs[names[r]] for r in out), default=0.0), offsets=offs)
+                      spread=max((offs[names[r]] for r in counted), default=0.0), offsets=offs,
+                      disagreeing=tuple(names[r] for r in counted))
 
 
 def cross_check_directions(estimates: list[Estimate], alpha: float = ALPHA) -> CrossCheck:
@@ -201,9 +212,10 @@ def cross_check_directions(estimates: list[Estimate], alpha: float = ALPHA) -> C
     Pv = np.eye(3) - np.outer(v, v)
     spread = np.zeros((3, 3))
     for e in es:
-        if e.source in r.left_out:
+        if e.source in r.disagreeing:
             t = Pv @ (e.value / np.linalg.norm(e.value))
             t = t / max(np.linalg.norm(t), 1e-12)
-            spread += ang[e.source] ** 2 * np.outer(t, t) / len(r.left_out)
+            spread += ang[e.source] ** 2 * np.outer(t, t) / len(r.disagreeing)
     return CrossCheck(value=v, cov_fit=P @ r.cov_fit @ P, cov_spread=spread, used=r.used, left_out=r.left_out,
-                      chi2=r.chi2, spread=max((ang[k] for k in r.left_out), default=0.0), offsets=ang)
+                      chi2=r.chi2, spread=max((ang[k] for k in r.disagreeing), default=0.0), offsets=ang,
+                      disagreeing=r.disagreeing)

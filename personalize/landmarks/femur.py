@@ -535,7 +535,7 @@ def _knee_cross_check(surface, res, cond_region, ax, mid, mid_cov, cyl_fit, sd, 
                                                  for k, v in KNEE_MODEL_SD.items()}}
     for r_, what, k in ((rc, "centre", 1e3), (ru, "axis", np.degrees(1.0))):
         if not r_.agree:
-            res.flag(FLAG_LOW_CONFIDENCE, f"knee {what}: estimates disagree ({', '.join(r_.left_out)} left out; "
+            res.flag(FLAG_LOW_CONFIDENCE, f"knee {what}: estimates disagree ({', '.join(r_.disagreeing)} left out; "
                                           f"spread {r_.spread * k:.1f} {'mm' if what == 'centre' else 'deg'})")
     return Axis(point=centre, direction=u, sd_deg=sd_deg), centre, cov
 
