@@ -32,6 +32,7 @@ demo: install
 	$(BIN)/personalize demo --out $(DEMO_OUT)
 
 test: install
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -n 2 --dist loadfile -q
 
 bench: install

@@ -191,15 +191,21 @@ def coordinate_map(model: Model, limits: str = "clamped", locked: bool = True,
             continue
         lo, hi = c.range
         if np.isfinite(hi):
-            A.append(nrow); b.append(hi - q_p[k]); lab.append(f"{c.name}<=upper")
+            A.append(nrow)
+            b.append(hi - q_p[k])
+            lab.append(f"{c.name}<=upper")
         if np.isfinite(lo):
-            A.append(-nrow); b.append(q_p[k] - lo); lab.append(f"{c.name}>=lower")
+            A.append(-nrow)
+            b.append(q_p[k] - lo)
+            lab.append(f"{c.name}>=lower")
     if model.inequalities is not None:
         G = model.inequalities.matrix
         if dep and np.any(G[:, dep]):
             raise InputError(model.name, "linear inequalities may not involve coupler-dependent coordinates")
         for g, h, l in zip(G[:, red], model.inequalities.rhs, model.inequalities.labels):
-            A.append(g @ N); b.append(h - g @ q_p); lab.append(l)
+            A.append(g @ N)
+            b.append(h - g @ q_p)
+            lab.append(l)
     A = np.array(A, float).reshape(-1, N.shape[1])
     b = np.array(b, float)
     for a in (red, q_p, N, A, b):

@@ -783,7 +783,6 @@ def periodic_drift(model: Model, cycles: int = 2000, steps_per_cycle: int = 24,
     for _ in range(settle):
         q = ik.step(q).q
     rot = model.rotational
-    spine = np.isin(model.coordinate_names, spine_coordinates(model))
     ref = None
     drift, drift_spine, drift_posture, postures = {}, {}, {}, {}
     max_err = np.zeros(len(ik.levels))

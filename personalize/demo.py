@@ -18,7 +18,6 @@ import json
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 
 from kinematics.atomic import inside, staged_dir, write_text
 

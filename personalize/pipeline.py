@@ -1359,7 +1359,7 @@ def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool
             C[:, -1] = f.mean
             laws[s_] = (replace(law, coefficients=C), text)
             law_fusion[s_] = (t_motion[s_], f)
-            sources[f"knee_law_{s_}"] += (f"; standing translation (intercept) fused: "
+            sources[f"knee_law_{s_}"] += ("; standing translation (intercept) fused: "
                                           + " / ".join(f"{1e3 * v:+.2f}" for v in f.mean)
                                           + f" mm (MRI weight {f.shares[0]:.2f})")
     sides_p = {s_: replace(sp, knee_law=laws[s_][0]) for s_, sp in params.sides.items()}

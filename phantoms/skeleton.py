@@ -281,7 +281,6 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
 
     # ---- anatomical points and axes in the lab at the standing pose (pelvis at its built position)
     plm = bt["pelvis"]["landmarks"]
-    P = {}
     normals = {}           # lab outward normals of skin sites
     body_of = {}
     tissue = {"ASI": 0.006, "PSI": 0.008, "KNE": 0.005, "KNEM": 0.005, "ANK": 0.003, "ANKM": 0.003,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.chain_blend import chain_residuals, segment_markers
+from kinematics.chain_blend import segment_markers
 from kinematics.errors import InputError
 from kinematics.reconstruction import reconstruct
 from phantoms import make_phantom

@@ -57,7 +57,8 @@ def test_helical_joint_pitch_and_root_within_1_percent():
     pitch = 0.0015 / (2 * math.pi)  # 1.5 mm per turn, m/rad
     c_abs = 0.03
     theta = np.linspace(0, 6 * 2 * math.pi, F)  # six turns
-    e1 = np.cross(n, [1.0, 0, 0]); e1 /= np.linalg.norm(e1)
+    e1 = np.cross(n, [1.0, 0, 0])
+    e1 /= np.linalg.norm(e1)
     e2 = np.cross(n, e1)
     ring = np.array([0.015 * (math.cos(k) * e1 + math.sin(k) * e2) for k in (0.0, 1.7, 3.3, 4.9)])
     Rb = axis_rotation(n, theta)

@@ -123,7 +123,6 @@ def test_uncalibrated_feet_give_nan_ankle_angles_with_a_note(synthetic):
 
 
 def test_leg_length_mismatch_is_refused(synthetic):
-    trial = synthetic[0]
     other = SubjectMeasurements(**{**SUBJECT.__dict__, "right_leg_length": 0.70, "left_leg_length": 0.70})
     static, _ = synthetic_legs(np.zeros((5, 3)), np.zeros((5, 3)))
     validate_static(SUBJECT, static, tolerance=0.15)  # straight legs: ASIS-ankle about the leg length
