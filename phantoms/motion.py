@@ -295,6 +295,27 @@ def crouch_coordinates(sk: PhantomSkeleton, foot_angle_deg: float, rate: float, 
     return _heel_compensation(sk, sk.complete(q))
 
 
+def star_arc(R: float, n_out: int, n_circ: int, ramp_fraction: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Hip flexion and abduction (rad) of a star-arc calibration (Camomilla et al. 2006).
+
+    Eight out-and-back excursions of amplitude `R` (rad) every 45 deg, `n_out` samples each,
+    then a circumduction of `n_circ` samples, faded in and out over `ramp_fraction` of it.
+    Returns two arrays of 8 n_out + n_circ samples.
+    """
+    flex, abd = [], []
+    for psi in np.radians(np.arange(0, 360, 45)):
+        s_ = 0.5 * (1 - np.cos(2 * np.pi * np.arange(n_out) / n_out))
+        flex.append(R * np.cos(psi) * s_)
+        abd.append(R * np.sin(psi) * s_)
+    a = 2 * np.pi * np.arange(n_circ) / n_circ
+    k = np.arange(n_circ)
+    ramp = (np.clip(k / (ramp_fraction * n_circ), 0, 1) * np.clip((n_circ - k) / (ramp_fraction * n_circ), 0, 1)
+            if ramp_fraction > 0 else 1.0)
+    flex.append(R * np.sin(a) * ramp)
+    abd.append(R * (1 - np.cos(a)) / 2 * ramp)
+    return np.concatenate(flex), np.concatenate(abd)
+
+
 def functional_hip_coordinates(sk: PhantomSkeleton, range_deg: float, rate: float, time_scale: float = 1.0,
                                rng: np.random.Generator | None = None) -> np.ndarray:
     """Star-arc hip calibration: right then left hip, 8 star excursions of `range_deg` then a circumduction."""
@@ -302,16 +323,7 @@ def functional_hip_coordinates(sk: PhantomSkeleton, range_deg: float, rate: floa
     R = np.radians(range_deg)
     T_out, T_circ = 1.0 * time_scale, 2.0 * time_scale
     n_out, n_circ = max(int(round(T_out * rate)), 4), max(int(round(T_circ * rate)), 8)
-    flex, abd = [], []
-    for psi in np.radians(np.arange(0, 360, 45)):
-        s_ = 0.5 * (1 - np.cos(2 * np.pi * np.arange(n_out) / n_out))
-        flex.append(R * np.cos(psi) * s_)
-        abd.append(R * np.sin(psi) * s_)
-    a = 2 * np.pi * np.arange(n_circ) / n_circ
-    ramp = np.clip(np.arange(n_circ) / (0.15 * n_circ), 0, 1) * np.clip((n_circ - np.arange(n_circ)) / (0.15 * n_circ), 0, 1)
-    flex.append(R * np.sin(a) * ramp)
-    abd.append(R * (1 - np.cos(a)) / 2 * ramp)
-    flex, abd = np.concatenate(flex), np.concatenate(abd)
+    flex, abd = star_arc(R, n_out, n_circ, ramp_fraction=0.15)
     n1 = flex.size
     F = 2 * n1
     q = np.repeat(sk.standing_q[None], F, axis=0)

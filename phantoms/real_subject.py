@@ -40,6 +40,7 @@ from kinematics.markers import MarkerTrial
 
 from .lab import Lab, make_lab
 from .marker_placement import PlacedMarker, place_markers
+from .motion import star_arc
 from .real_anatomy import RealAnatomy
 
 __all__ = ["standing_coordinates", "coordinate_signs", "real_gait_coordinates", "real_functional_coordinates",
@@ -204,15 +205,7 @@ def real_functional_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, 
     m = anat.model
     R = np.radians(range_deg)
     n_out, n_circ = max(int(round(rate)), 4), max(int(round(2 * rate)), 8)
-    flex, abd = [], []
-    for psi in np.radians(np.arange(0, 360, 45)):
-        s_ = 0.5 * (1 - np.cos(2 * np.pi * np.arange(n_out) / n_out))
-        flex.append(R * np.cos(psi) * s_)
-        abd.append(R * np.sin(psi) * s_)
-    a = 2 * np.pi * np.arange(n_circ) / n_circ
-    flex.append(R * np.sin(a))
-    abd.append(R * (1 - np.cos(a)) / 2)
-    flex, abd = np.concatenate(flex), np.concatenate(abd)
+    flex, abd = star_arc(R, n_out, n_circ)
     n1 = flex.size
     q = np.repeat(q0[None], 2 * n1, axis=0)
     ix = m.coordinate_index
