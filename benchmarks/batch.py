@@ -30,7 +30,7 @@ for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from kinematics.atomic import write_text  # noqa: E402
+from lowerlimb.atomic import write_text  # noqa: E402
 
 
 def demo_job(subject_dir: Path, out: Path, progress=None) -> dict:

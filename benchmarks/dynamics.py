@@ -12,7 +12,7 @@ Trial part (``--trial``, on by default): subject01_walk1 on subject01_simbody.os
 with its ground reactions and a 6 Hz filter, once through OpenSim's
 InverseDynamicsTool (``tool.run()``: reading the files, filtering, splines,
 solving; the model constructed beforehand) and once through
-`kinematics.inverse_dynamics.trial_inverse_dynamics` (reading the same
+`kinematics.gait.inverse_dynamics.trial_inverse_dynamics` (reading the same
 files, building the transmission chain, filtering, splines, solving; the
 model loaded beforehand), over the
 setup's window (0.4-1.6 s, i.e. the 67 IK frames from 0.5 s) and over the
@@ -44,7 +44,7 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from kinematics.atomic import write_text  # noqa: E402
+from lowerlimb.atomic import write_text  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -66,9 +66,9 @@ def main(argv=None) -> int:
     except ImportError:
         print("skipped: the opensim package is not installed")
         return 0
-    from kinematics.dynamics import inverse_dynamics, opensim_inverse_dynamics
-    from kinematics.opensim_io import load_osim
-    from kinematics.transmission import TransmissionChain
+    from kinematics.mechanisms.dynamics import inverse_dynamics, opensim_inverse_dynamics
+    from kinematics.io.opensim_io import load_osim
+    from kinematics.mechanisms.transmission import TransmissionChain
 
     model = load_osim(path)
     rng = np.random.default_rng(args.seed)
@@ -115,11 +115,11 @@ def trial_benchmark(d: Path, repeat: int) -> dict:
 
     import opensim
 
-    from kinematics.external_loads import read_external_loads
-    from kinematics.inverse_dynamics import trial_inverse_dynamics
-    from kinematics.opensim_io import load_osim
-    from kinematics.storage import read_mot, read_sto
-    from kinematics.transmission import TransmissionChain
+    from kinematics.io.external_loads import read_external_loads
+    from kinematics.gait.inverse_dynamics import trial_inverse_dynamics
+    from kinematics.io.opensim_io import load_osim
+    from kinematics.io.storage import read_mot, read_sto
+    from kinematics.mechanisms.transmission import TransmissionChain
 
     model_path, ik, grf, xml = (d / n for n in ("subject01_simbody.osim", "subject01_walk1_ik.mot",
                                                   "subject01_walk1_grf.mot", "subject01_walk1_grf.xml"))

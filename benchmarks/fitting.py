@@ -41,7 +41,7 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
 
-from kinematics.atomic import write_text  # noqa: E402
+from lowerlimb.atomic import write_text  # noqa: E402
 from personalize.fitting import (FittingError, fit_cylinder, fit_ellipsoid,  # noqa: E402
                                  fit_plane, fit_sphere, fit_superquadric)
 from personalize.fitting.synthetic import (add_outliers, cylinder_arc, cylinder_crb,  # noqa: E402

@@ -40,7 +40,7 @@ def cache_subject(d: Path, out_json: Path, say=print) -> dict:
     from personalize.pipeline import (_PELVIS, _THIGH, _cluster_pose, estimate_joints, find_inputs,
                                       truth_in_static_lab)
     from personalize.surfaces import load_bones
-    from kinematics.functional import score
+    from kinematics.algorithms.functional import score
 
     t0 = time.perf_counter()
     inputs = find_inputs(d)

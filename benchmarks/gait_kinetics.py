@@ -53,16 +53,16 @@ def _match(ref, other, kind, side):
 
 
 def mocap_pig(data: Path, out: Path) -> dict:
-    from kinematics.c3d import read_c3d, read_c3d_outputs
-    from kinematics.errors import FitError, InputError
-    from kinematics.foot_contact import (
+    from kinematics.io.c3d import read_c3d, read_c3d_outputs
+    from lowerlimb.errors import FitError, InputError
+    from kinematics.gait.foot_contact import (
         FootElement,
         FootParameters,
         fit_foot_parameters,
         sagittal_stance,
     )
-    from kinematics.forceplates import assign_feet, read_force_plates
-    from kinematics.gait_cycles import (
+    from kinematics.io.forceplates import assign_feet, read_force_plates
+    from kinematics.gait.gait_cycles import (
         c3d_events,
         cycle_statistics,
         events_from_kinematics,
@@ -70,9 +70,9 @@ def mocap_pig(data: Path, out: Path) -> dict:
         gait_cycles,
         write_cycles_csv,
     )
-    from kinematics.pig import plug_in_gait, static_foot_offsets
-    from kinematics.pig_kinetics import ground_reactions, plug_in_gait_kinetics
-    from kinematics.subject import read_vsk
+    from kinematics.gait.pig import plug_in_gait, static_foot_offsets
+    from kinematics.gait.pig_kinetics import ground_reactions, plug_in_gait_kinetics
+    from kinematics.gait.subject import read_vsk
     from personalize.gait_plots import (
         plot_foot_angle_fit,
         plot_gait_grid,
@@ -173,11 +173,11 @@ def mocap_pig(data: Path, out: Path) -> dict:
 
 
 def subject01_walk(data: Path) -> dict:
-    from kinematics.gait_cycles import (
+    from kinematics.gait.gait_cycles import (
         events_from_kinematics,
         events_from_vertical_force,
     )
-    from kinematics.storage import read_mot, read_trc
+    from kinematics.io.storage import read_mot, read_trc
 
     trial = read_trc(data / "subject01_walk1.trc")
     grf = read_mot(data / "subject01_walk1_grf.mot")
@@ -205,7 +205,7 @@ def main(argv=None) -> int:
     text = json.dumps(result, indent=1)
     print(text)
     if args.json:
-        from kinematics.atomic import write_text
+        from lowerlimb.atomic import write_text
 
         write_text(args.json, text + "\n")
     return 0

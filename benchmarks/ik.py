@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from kinematics.atomic import write_text  # noqa: E402
+from lowerlimb.atomic import write_text  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -56,9 +56,9 @@ def main(argv=None) -> int:
     except ImportError:
         print("skipped: the opensim package is not installed")
         return 0
-    from kinematics.ik import read_ik_setup, solve_ik
-    from kinematics.opensim_io import load_osim, opensim_inverse_kinematics
-    from kinematics.storage import read_trc
+    from kinematics.algorithms.ik import read_ik_setup, solve_ik
+    from kinematics.io.opensim_io import load_osim, opensim_inverse_kinematics
+    from kinematics.io.storage import read_trc
 
     model_path, trc = d / "subject01_simbody_adjusted.osim", d / "subject01_walk1.trc"
     su = read_ik_setup(d / "subject01_Setup_IK.xml")
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
     dq = np.abs(res.q - ref["q"][:, order])
     rot = model.rotational
     # Weighted objective of OpenSim's solution evaluated with the engine (same formula as the engine's cost).
-    from kinematics.fk import marker_positions
+    from kinematics.algorithms.fk import marker_positions
 
     use = list(res.markers)
     w = np.array([su.marker_weights[m] for m in use])

@@ -4,7 +4,7 @@ On TRAINING phantom subjects (``personalize.validate.draw_subjects`` with the
 training seed 1000; validation seeds are never used): run the pipeline
 (`personalize.pipeline.run_subject`), then IK of the gait and crouch trials on
 the personalised model with free knee translations, fit the flexion law
-t = s * flexion + c per side (`kinematics.correlative.fit_law`) and evaluate it
+t = s * flexion + c per side (`kinematics.mechanisms.correlative.fit_law`) and evaluate it
 at the standing knee flexion.  The phantom's true standing translation is 0,
 so the result is the estimate's error; its rms per axis is
 `personalize.parameter_fusion.MOTION_KNEE_TRANSLATION_SD`.  The fit's own
@@ -36,10 +36,10 @@ sys.path.insert(0, str(REPO))
 
 
 def standing_translation(subject_dir: Path, out: Path) -> dict:
-    from kinematics.c3d import read_c3d
-    from kinematics.correlative import fit_law
-    from kinematics.ik import solve_ik
-    from kinematics.opensim_io import load_osim
+    from kinematics.io.c3d import read_c3d
+    from kinematics.mechanisms.correlative import fit_law
+    from kinematics.algorithms.ik import solve_ik
+    from kinematics.io.opensim_io import load_osim
     from personalize.pipeline import run_subject
 
     if not (out / "model.osim").is_file():
@@ -98,7 +98,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--work", type=Path, default=Path("/tmp/knee_ankle_calibration"))
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "knee_ankle_calibration.json")
     a = ap.parse_args(argv)
-    from kinematics.atomic import write_text
+    from lowerlimb.atomic import write_text
     from personalize.validate import draw_subjects, ensure_phantom_subject
 
     specs = draw_subjects(a.subjects, 1000)

@@ -646,7 +646,7 @@ def main() -> None:
         out["phantom"] = phantom(args.seeds)
     if args.validation:
         out["validation_subjects"] = validation_subjects(args.validation)
-    from kinematics.atomic import write_text
+    from lowerlimb.atomic import write_text
 
     write_text(args.json, json.dumps(out, indent=1, default=float) + "\n")
     print(f"\nwritten {args.json}")

@@ -1,6 +1,6 @@
 """Benchmark: marker-based reconstruction (Plug-in-Gait vs foot-to-hip) on motion phantoms.
 
-Part 1 (speed, issue K2): frames per second of `kinematics.reconstruction.reconstruct`
+Part 1 (speed, issue K2): frames per second of `kinematics.gait.reconstruction.reconstruct`
 for each method on a 10-minute gait trial at 100 Hz (60 000 frames), best of 3.
 
 Part 2 (the seed's validation claims, Tändl et al. 2010 section 5, reproduced
@@ -32,11 +32,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from kinematics.atomic import write_text  # noqa: E402
+from lowerlimb.atomic import write_text  # noqa: E402
 
 
 def speed() -> dict:
-    from kinematics.reconstruction import reconstruct
+    from kinematics.gait.reconstruction import reconstruct
     from phantoms import make_phantom
     from phantoms.motion import make_trials
 
@@ -58,7 +58,7 @@ def speed() -> dict:
 
 
 def claims(n_seeds: int) -> dict:
-    from kinematics.reconstruction import reconstruct, tibia_fluctuation
+    from kinematics.gait.reconstruction import reconstruct, tibia_fluctuation
     from phantoms import make_phantom
     from phantoms.motion import make_trials
 
@@ -89,8 +89,8 @@ def claims(n_seeds: int) -> dict:
 
 
 def functional(n_seeds: int) -> dict:
-    from kinematics.functional import joint_centre_from_clusters
-    from kinematics.reconstruction import reconstruct
+    from kinematics.algorithms.functional import joint_centre_from_clusters
+    from kinematics.gait.reconstruction import reconstruct
     from phantoms import make_phantom
     from phantoms.motion import make_trials
 

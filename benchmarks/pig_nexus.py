@@ -1,6 +1,6 @@
 """Benchmark: Plug-in-Gait against Vicon Nexus, and functional hip centres on star-arc motion.
 
-Part 1 runs `kinematics.pig` on ../shared/data/mocap_pig (pyCGM sample data,
+Part 1 runs `kinematics.gait.pig` on ../shared/data/mocap_pig (pyCGM sample data,
 which carries Nexus' own Plug-in-Gait outputs) with the foot offsets
 calibrated from the static trial, and reports the mean over frames of
 |knee/ankle centre - Nexus femur/tibia origin| (mm) and |angle - Nexus angle|
@@ -31,13 +31,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 
-from kinematics.atomic import write_text  # noqa: E402
+from lowerlimb.atomic import write_text  # noqa: E402
 
 
 def nexus_comparison(data: Path) -> dict:
-    from kinematics.c3d import read_c3d, read_c3d_outputs
-    from kinematics.pig import plug_in_gait, static_foot_offsets
-    from kinematics.subject import read_vsk, validate_static
+    from kinematics.io.c3d import read_c3d, read_c3d_outputs
+    from kinematics.gait.pig import plug_in_gait, static_foot_offsets
+    from kinematics.gait.subject import read_vsk, validate_static
 
     sub = read_vsk(data / "Test.vsk")
     static = read_c3d(data / "Static_trial.c3d")
@@ -65,8 +65,8 @@ def nexus_comparison(data: Path) -> dict:
 def functional_errors() -> dict:
     from test_functional import HIP_IN_PELVIS, PELVIS_MARKERS, THIGH_MARKERS, simulate
 
-    from kinematics.functional import centre_transformation, pivot_sphere_fit, score
-    from kinematics.segments import rigid_pose
+    from kinematics.algorithms.functional import centre_transformation, pivot_sphere_fit, score
+    from kinematics.algorithms.segments import rigid_pose
 
     out = {}
     for seed in range(5):

@@ -53,9 +53,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from rich.progress import Progress  # noqa: E402
 
-from kinematics.atomic import staged_dir, write_text  # noqa: E402
-from kinematics.fk import forward_kinematics  # noqa: E402
-from kinematics.spine import (KinematicTasks, balanced_posture_tasks, isolated_spine,  # noqa: E402
+from lowerlimb.atomic import staged_dir, write_text  # noqa: E402
+from kinematics.algorithms.fk import forward_kinematics  # noqa: E402
+from kinematics.mechanisms.spine import (KinematicTasks, balanced_posture_tasks, isolated_spine,  # noqa: E402
                               isolated_spine_tasks, mannequin, periodic_drift, spine_drift_bound, spine_layout,
                               spine_solver, swing_components, torsion_direction_changes, vertebral_twist)
 

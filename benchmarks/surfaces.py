@@ -69,7 +69,7 @@ def _make_volume(voxel_mm: float, folder: Path) -> tuple[Path, str]:
     import nibabel as nib
     import numpy as np
 
-    from kinematics.atomic import write_text
+    from lowerlimb.atomic import write_text
 
     ph = make_phantom(seed=0, placement="identity")  # both sides, axis-aligned: the tightest volume
     # partial-volume supersampling is slow at 0.5 mm and changes nothing about the work measured
@@ -90,7 +90,7 @@ def _make_standin(voxel_mm: float, folder: Path) -> tuple[Path, str]:
     import nibabel as nib
     import numpy as np
 
-    from personalize.bones import DEFAULT_LABEL_MAP
+    from lowerlimb.bones import DEFAULT_LABEL_MAP
 
     h = voxel_mm
     shape = tuple(int(round(e / h)) for e in (420.0, 260.0, 1000.0))
@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         _child(args.child[0], args.child[1] == "1")
         return 0
-    from kinematics.atomic import write_text
+    from lowerlimb.atomic import write_text
 
     report = {"benchmark": "surfaces: label volume -> all point clouds", "units": {"wall_s": "s", "memory": "bytes"},
               "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},

@@ -1,16 +1,17 @@
 """Multibody kinematics: models, joints, transmission elements, FK/IK, correlative and coupled joints, marker data.
 
-This package never imports `personalize`.
+Subpackages: `multibody` (the model), `algorithms` (FK, IK, loops), `io` (files),
+`gait` (reconstruction from marker trials), `mechanisms` (correlative, transmission,
+chords, spines).  This package imports `lowerlimb` and never `personalize` or `phantoms`.
 """
-from .errors import FitError, InputError
-from .model import Body, Coordinate, Frame, Marker, Model
-from .joints import CustomJoint, ExpMapSpherical, SwingJoint, Transform, TransformAxis
-from .coupling import CoordinateCoupler, LinearCoupling, LinearInequalities
-from .fk import forward_kinematics, marker_jacobian, marker_positions
-from .ik import IKResult, solve_ik
-from .opensim_io import load_osim, save_osim
+from kinematics.multibody.model import Body, Coordinate, Frame, Marker, Model
+from kinematics.multibody.joints import CustomJoint, ExpMapSpherical, SwingJoint, Transform, TransformAxis
+from kinematics.multibody.coupling import CoordinateCoupler, LinearCoupling, LinearInequalities
+from kinematics.algorithms.fk import forward_kinematics, marker_jacobian, marker_positions
+from kinematics.algorithms.ik import IKResult, solve_ik
+from kinematics.io.opensim_io import load_osim, save_osim
 
-__all__ = ["InputError", "FitError", "Body", "Coordinate", "Frame", "Marker", "Model", "CustomJoint",
+__all__ = ["Body", "Coordinate", "Frame", "Marker", "Model", "CustomJoint",
            "ExpMapSpherical", "SwingJoint", "Transform", "TransformAxis", "CoordinateCoupler", "LinearCoupling",
            "LinearInequalities", "forward_kinematics", "marker_jacobian", "marker_positions", "IKResult", "solve_ik",
            "load_osim", "save_osim"]

@@ -21,7 +21,7 @@ import sys
 import typer
 
 from . import __version__
-from .errors import FitError, InputError, Interrupted
+from lowerlimb.errors import FitError, InputError, Interrupted
 
 COMMANDS = (
     "phantom", "surfaces", "bones", "ik", "markers", "correlate",
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _console_main() -> None:  # pragma: no cover - thin wrapper
-    from .errors import handle_termination
+    from lowerlimb.errors import handle_termination
 
     handle_termination()
     sys.exit(main())

@@ -22,7 +22,7 @@ One dask task per subject.  The runner
   output) atomically after every completed subject, so an interrupted batch
   still says what is done; staging folders are removed;
 * stops on SIGINT (Ctrl-C) or SIGTERM by cancelling the remaining subjects
-  and raising `personalize.errors.Interrupted` (the CLI exits 130 / 143); a
+  and raising `lowerlimb.errors.Interrupted` (the CLI exits 130 / 143); a
   rerun resumes from the complete subjects.
 
 Workers run with one BLAS/OpenMP thread (the parallelism is across subjects).
@@ -56,8 +56,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
-from kinematics.atomic import inside, write_text
-from kinematics.errors import FitError, InputError
+from lowerlimb.atomic import inside, write_text
+from lowerlimb.errors import FitError, InputError
 
 #: the per-subject job used when none is given: ``run_subject(subject_dir, out, *, progress=None) -> dict``
 DEFAULT_JOB = "personalize.pipeline.run_subject"
@@ -652,7 +652,7 @@ def run_batch(manifest: str | os.PathLike | Sequence[Subject], out: str | os.Pat
     t0 = t1 = time.perf_counter()
     started_ns = time.time_ns() - 1_000_000_000  # file times have coarse resolution on some file systems
     if todo:
-        from .errors import Interrupted
+        from lowerlimb.errors import Interrupted
 
         with _termination_raises(), _quiet_dask():
             try:
@@ -675,7 +675,7 @@ def _termination_raises() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    from .errors import Interrupted
+    from lowerlimb.errors import Interrupted
 
     def handler(signum, frame):
         raise Interrupted(signum)

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Callable
 
 
-from kinematics.atomic import inside, staged_dir, write_text
+from lowerlimb.atomic import inside, staged_dir, write_text
 
 #: bones whose surfaces the demo measures (the ones the accuracy targets name)
 DEMO_SURFACE_BONES = ("pelvis", "femur_r", "tibia_r", "femur_l", "tibia_l")

@@ -27,7 +27,7 @@ foot-to-hip) are blended with the same Gaussian weights, each chain's pose
 error variance taken as its marker residual squared:
 w_b = r_a² / (r_a² + r_b²), R = R_a exp(w_b log(R_aᵀ R_b)) (the weighted
 geodesic mean on SO(3)), t = (1 - w_b) t_a + w_b t_b.  That part lives in
-`kinematics.chain_blend` (the marker-driven side uses it; re-exported here).
+`kinematics.gait.chain_blend` (the marker-driven side uses it; re-exported here).
 """
 from __future__ import annotations
 
@@ -37,9 +37,9 @@ import numpy as np
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from kinematics.chain_blend import BlendedPoses, blend_poses
+from kinematics.gait.chain_blend import BlendedPoses, blend_poses
 
-from .errors import InputError
+from lowerlimb.errors import InputError
 
 __all__ = ["Fused", "FusedAxis", "BlendedPoses", "as_gaussian", "as_axis", "fuse_gaussian", "fuse_linear", "fuse_axis",
            "fuse_axes", "blend_poses", "fusion_monte_carlo"]
@@ -96,7 +96,7 @@ def _as_cov(c, d: int, name: str) -> np.ndarray:
 def as_gaussian(estimate, *, frame: str = "proximal"):
     """(mean, cov) of any estimate the project produces.
 
-    Accepts a ``(mean, cov)`` pair, a `kinematics.functional.CentreEstimate`
+    Accepts a ``(mean, cov)`` pair, a `kinematics.algorithms.functional.CentreEstimate`
     (``frame`` "proximal" or "distal"), a `SphereFit` (centre, cov), a
     landmarks.json landmark ``{"position", "cov"}`` or a joints.json joint
     ``{"origin", "origin_cov"}``.
@@ -413,7 +413,7 @@ def fuse_axis(directions, sd_deg, names=None, points=None, point_covs=None, *, m
 def as_axis(estimate, *, frame: str = "proximal"):
     """(direction, sd_deg, point, point_cov) of an axis estimate.
 
-    Accepts a `kinematics.functional.AxisEstimate` (``direction_sd`` in rad,
+    Accepts a `kinematics.algorithms.functional.AxisEstimate` (``direction_sd`` in rad,
     taken as the per-tangent-component sd), a landmarks.json axis
     ``{"point", "direction", "sd_deg"}`` (point covariance unknown: None), a
     joints.json joint ``{"origin", "origin_cov", "rotation", "axis_sd_deg"}``

@@ -77,7 +77,7 @@ def plot_gait_grid(path: str | os.PathLike, stats: dict, quantity: str, unit: st
     Parameters
     ----------
     path : output image (.png / .pdf / .svg)
-    stats : dict (``f"{joint}_{quantity}"``, side) -> `kinematics.gait_cycles.CycleStatistics`
+    stats : dict (``f"{joint}_{quantity}"``, side) -> `kinematics.gait.gait_cycles.CycleStatistics`
         with 3 components (sagittal, frontal, transverse), already in `unit`
     quantity : ``"angle"`` or ``"moment"`` (selects the panel titles)
     unit : y-axis unit, e.g. ``"deg"`` or ``"N mm/kg"``

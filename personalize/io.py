@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .bones import DEFAULT_LABEL_MAP, PREFERRED_STEMS, WHOLE_FOOT, canonical_bone_name, is_tissue_name
-from .errors import InputError
+from lowerlimb.bones import DEFAULT_LABEL_MAP, PREFERRED_STEMS, WHOLE_FOOT, canonical_bone_name, is_tissue_name
+from lowerlimb.errors import InputError
 
 __all__ = [
     "LabelVolume",
@@ -283,7 +283,7 @@ def read_label_volume(path: str | os.PathLike, label_map: str | os.PathLike | di
         The label volume.
     label_map : dict, path to JSON, or None
         Bone -> label map.  None uses ``label_map.json`` beside the volume if
-        present, else `personalize.bones.DEFAULT_LABEL_MAP`.
+        present, else `lowerlimb.bones.DEFAULT_LABEL_MAP`.
 
     Returns
     -------
@@ -630,7 +630,7 @@ def check_and_repair_mesh(mesh: trimesh.Trimesh, bone: str, source: str | os.Pat
 def _bone_files(folder: Path) -> tuple[dict[str, Path], list[str]]:
     """Bone (or whole-foot stem ``foot_r``) -> file chosen in `folder`, and the file names not read.
 
-    Several files for one bone: a preferred stem (`personalize.bones.PREFERRED_STEMS`),
+    Several files for one bone: a preferred stem (`lowerlimb.bones.PREFERRED_STEMS`),
     then the canonical stem, then a mesh over a point cloud.
     """
     files: dict[str, list[Path]] = {}
@@ -672,7 +672,7 @@ def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | Non
     """Read a folder of bone meshes or point clouds named after the bones.
 
     Files: ``<bone>.stl|ply|obj`` (``femur_r``, ``tibia_no_fib_r``,
-    ``pelvis_no_sacrum``, ... see `personalize.bones`), point clouds
+    ``pelvis_no_sacrum``, ... see `lowerlimb.bones`), point clouds
     ``<bone>.ply|pcd|xyz`` without faces (surface reconstructed), and a whole
     foot as one mesh (``foot_r``: split into talus, calcn and toes where its
     bones are separate pieces, `personalize.whole_foot`).
@@ -691,7 +691,7 @@ def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | Non
         Missing folder, no recognised bone file, no usable bone, a requested
         bone missing or unusable, mixed units.
     """
-    from .bones import WHOLE_FOOT
+    from lowerlimb.bones import WHOLE_FOOT
 
     folder = Path(path)
     if not folder.exists():

@@ -28,7 +28,7 @@ Joints:
   (Z_k the femur's long axis made orthogonal to Y_k), from the femur's knee
   frame (Y_k, Z_k) to the tibia frame, and translations knee_tx (anterior),
   knee_ty (proximal), knee_tz (lateral) that are a linear law of the three
-  rotations (`kinematics.correlative.CorrelativeLaw`, enforced as linear
+  rotations (`kinematics.mechanisms.correlative.CorrelativeLaw`, enforced as linear
   couplings).  A law's constant term is the translation at the STANDING
   pose (zero: the fused knee centre is the standing one); the builder
   re-expresses it in the model's coordinates, c_0' = c_0 - S q_standing;
@@ -52,11 +52,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinematics.correlative import CorrelativeLaw
-from kinematics.errors import InputError
-from kinematics.functions import Linear
-from kinematics.joints import CustomJoint, Transform, TransformAxis, free, revolute
-from kinematics.model import Body, Coordinate, Marker, Model
+from kinematics.mechanisms.correlative import CorrelativeLaw
+from lowerlimb.errors import InputError
+from kinematics.multibody.functions import Linear
+from kinematics.multibody.joints import CustomJoint, Transform, TransformAxis, free, revolute
+from kinematics.multibody.model import Body, Coordinate, Marker, Model
 
 __all__ = ["SideParameters", "SubjectParameters", "PersonalModel", "build_personal_model", "default_knee_law",
            "MARKER_BODIES", "DE_LEVA", "save_model_json", "save_model_osim", "write_meshes"]
@@ -161,7 +161,7 @@ class SubjectParameters:
 class PersonalModel:
     """The built model and what it was built from.
 
-    model : kinematics.model.Model (ground = static lab frame, Z up)
+    model : kinematics.multibody.model.Model (ground = static lab frame, Z up)
     standing_q : (n_q,) coordinates of the static pose
     body_frames : dict body -> (origin (3,), rotation (3, 3)) static lab pose
     parameters : SubjectParameters
@@ -352,7 +352,7 @@ def write_meshes(pm: PersonalModel, meshes: dict, folder: Path) -> dict:
 
     Returns dict bone -> (body, relative file name).
     """
-    from kinematics.atomic import atomic_path, inside
+    from lowerlimb.atomic import atomic_path, inside
 
     out = {}
     for bone, (mesh, body) in sorted(meshes.items()):
@@ -376,11 +376,11 @@ def write_meshes(pm: PersonalModel, meshes: dict, folder: Path) -> dict:
 
 
 def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = None) -> Path:
-    """Export to OpenSim (``kinematics.opensim_io.to_opensim``) with the bone meshes attached to their bodies."""
+    """Export to OpenSim (``kinematics.io.opensim_io.to_opensim``) with the bone meshes attached to their bodies."""
     import os
 
-    from kinematics.atomic import atomic_path
-    from kinematics.opensim_io import to_opensim
+    from lowerlimb.atomic import atomic_path
+    from kinematics.io.opensim_io import to_opensim
 
     om = to_opensim(pm.model)
     import opensim as osim
@@ -430,6 +430,6 @@ def model_json(pm: PersonalModel, mesh_files: dict | None = None) -> dict:
 
 
 def save_model_json(pm: PersonalModel, path: Path, mesh_files: dict | None = None) -> Path:
-    from kinematics.atomic import write_text
+    from lowerlimb.atomic import write_text
 
     return write_text(path, json.dumps(model_json(pm, mesh_files), indent=1) + "\n")

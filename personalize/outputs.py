@@ -25,7 +25,7 @@ import tempfile
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from .errors import InputError
+from lowerlimb.errors import InputError
 
 __all__ = ["check_output_dir", "check_output_file", "replaced_dir", "probe_writable"]
 

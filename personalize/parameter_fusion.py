@@ -13,7 +13,7 @@ ankle centres).  To first order, with u = (p - q) / |p - q|,
 
 and the two sources are fused as 1-D Gaussians (`personalize.fusion.fuse_gaussian`).
 
-Knee law intercept.  The law t = S q + c (`kinematics.correlative`) is
+Knee law intercept.  The law t = S q + c (`kinematics.mechanisms.correlative`) is
 stored with its constant term as the knee translation at the standing pose,
 t_st (`personalize.model_builder`).  MRI: the femur's and the tibia's knee
 points are one point of the scan, t_st = 0, with the detection covariance
@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
+from lowerlimb.errors import InputError
 from .fusion import Fused, fuse_gaussian
 
 __all__ = ["SEGMENTS", "MRI_POSTURE_SD", "MOTION_KNEE_TRANSLATION_SD", "segment_length", "fuse_segment_lengths",

@@ -35,10 +35,10 @@
    intercepts are zero at the fused knee centre (the fused centre IS the
    law's standing translation); written as ``model.osim`` (with the bone
    meshes), ``model.json`` and ``meshes/<bone>.stl``;
-7. **IK** of every trial (`kinematics.ik.solve_ik`): ``kinematics/<trial>.mot``
+7. **IK** of every trial (`kinematics.algorithms.ik.solve_ik`): ``kinematics/<trial>.mot``
    and ``kinematics/<trial>_marker_errors.sto``; and per dynamic trial the
    hip-first (Plug-in-Gait) and foot-first chains blended frame by frame with
-   Gaussian weights (`kinematics.chain_blend`): ``kinematics/<trial>_chains.mot``
+   Gaussian weights (`kinematics.gait.chain_blend`): ``kinematics/<trial>_chains.mot``
    and ``_chain_weights.sto``;
 8. ``summary.json`` and ``report.html``; for phantom subjects (``truth.json``
    and ``truth/static_centres.trc`` present) the errors against the truth.
@@ -56,7 +56,7 @@ TRAINING phantom subjects (`benchmarks/fusion_cache.py` then
 
 * MRI: the hip centre's error is the pelvis registration's (the femoral head
   centre itself is found to ~0.1 mm); the registration's propagated
-  covariance (per-site soft-tissue prior sd, `kinematics.soft_tissue`: ASIS
+  covariance (per-site soft-tissue prior sd, `kinematics.gait.soft_tissue`: ASIS
   9.7 ± 7.0 mm, PSIS 19.6 ± 10.9 mm; marker placement sd; landmark covariances)
   keeps its structure and its cross-covariance between the two hips (one
   shared registration) and is scaled by `MRI_HIP_COV_SCALE`.  When the label
@@ -92,9 +92,9 @@ from typing import Callable
 
 import numpy as np
 
-from kinematics.atomic import inside, staged_dir, write_text
-from kinematics.errors import FitError, InputError
-from kinematics.markers import MarkerTrial
+from lowerlimb.atomic import inside, staged_dir, write_text
+from lowerlimb.errors import FitError, InputError
+from kinematics.io.markers import MarkerTrial
 
 __all__ = ["run_subject", "SubjectInputs", "find_inputs", "estimate_joints", "JointEstimates", "fit_knee_laws",
            "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES", "write_phantom_subject", "SHORT_TRIALS", "MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MOTION_HIP_STA_COV", "fuse_hips", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE", "PIG_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD", "MRI_CENTRE_COV_SCALE",
@@ -103,7 +103,7 @@ __all__ = ["run_subject", "SubjectInputs", "find_inputs", "estimate_joints", "Jo
 #: Hip error models, calibrated on 24 TRAINING phantom subjects (48 legs; `personalize.validate.draw_subjects(24,
 #: seed=1000)`, never a validation seed; benchmarks/results/fusion_calibration*.json; a 12/12 split of the same
 #: subjects checks them on held-out legs).  The phantoms' pelvis markers sit along the bone normal over soft
-#: tissue drawn per subject from `kinematics.soft_tissue` (the registration's prior), so the MRI hip is unbiased
+#: tissue drawn per subject from `kinematics.gait.soft_tissue` (the registration's prior), so the MRI hip is unbiased
 #: on them (mean error 1.1, 0.0, 0.3 mm anterior/medial/up) but spread by the tissue (AP rms 6.7 mm, heavy-tailed).
 #: Variance scale of the registration-propagated MRI hip covariance: mean Mahalanobis d² = 3 on the training legs
 #: (median d² gives 0.23: the log-normal tissue makes the errors heavy-tailed).  The registration model also
@@ -169,7 +169,7 @@ class SubjectInputs:
     folder : Path; bones : labels file or bones/ folder; label_map : Path or None
     static : MarkerTrial; trials : dict name -> MarkerTrial (every dynamic trial, incl. functional)
     functional : name of the hip calibration trial or None
-    subject : kinematics.subject.SubjectMeasurements
+    subject : kinematics.gait.subject.SubjectMeasurements
     truth : dict (truth.json) or None; sides : tuple of sides with both bones and markers
     """
 
@@ -200,8 +200,8 @@ def find_inputs(subject_dir: str | Path) -> SubjectInputs:
     ------
     InputError : one line naming the file and the problem
     """
-    from kinematics.c3d import read_c3d
-    from kinematics.subject import read_subject
+    from kinematics.io.c3d import read_c3d
+    from kinematics.gait.subject import read_subject
 
     folder = Path(subject_dir)
     if not folder.is_dir():
@@ -365,7 +365,7 @@ def _static_reference(static: MarkerTrial, names) -> tuple[list[str], np.ndarray
 
 def _cluster_pose(static: MarkerTrial, trials, names):
     """Cluster poses over the concatenated trials; the cluster frame is the static lab frame."""
-    from kinematics.segments import rigid_pose
+    from kinematics.algorithms.segments import rigid_pose
 
     names0, ref0 = _static_reference(static, names)
     ref_of = dict(zip(names0, ref0))
@@ -391,7 +391,7 @@ def motion_hip(static, functional: MarkerTrial, side: str, axes=None):
     `MOTION_HIP_STA_COV` (pelvis axes `axes`, 3x3 columns x, y, z; the static
     lab axes if None).
     """
-    from kinematics.functional import score
+    from kinematics.algorithms.functional import score
 
     S = side.upper()
     P = _cluster_pose(static, [functional], _PELVIS + ("SACR",))
@@ -454,7 +454,7 @@ def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None 
 
 def motion_knee_axis(static, trials, side: str):
     """SARA knee axis (static lab frame) of the thigh and shank clusters over `trials`; (direction, sd_deg, point, point_cov)."""
-    from kinematics.functional import sara
+    from kinematics.algorithms.functional import sara
 
     S = side.upper()
     P = _cluster_pose(static, trials, tuple(S + m for m in _THIGH))
@@ -624,7 +624,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, lm_json: dict, joints
     `skin`: {marker: `personalize.skin.SkinThickness`}; default measured by `pelvis_skin` (empty
     without a body label).
     """
-    from kinematics.pig import pelvis_frame
+    from kinematics.gait.pig import pelvis_frame
 
     from .fusion import fuse_axis, fuse_gaussian
     from .registration import register_segments, static_marker_positions
@@ -808,7 +808,7 @@ def _note_inconsistencies(est: "JointEstimates", p_min: float = 0.01) -> None:
 
 def _pig_static(inputs: SubjectInputs):
     """Plug-in-Gait reconstruction of the static trial (knee and ankle centres, torsioned tibia)."""
-    from kinematics.reconstruction import reconstruct
+    from kinematics.gait.reconstruction import reconstruct
 
     return reconstruct(inputs.static, "pig", static=inputs.static, subject=inputs.subject, check_static=False)
 
@@ -821,7 +821,7 @@ def truth_in_static_lab(inputs: SubjectInputs) -> dict | None:
     knee and ankle joint origins onto the true static centres of
     ``truth/static_centres.trc`` (median over frames); its rms is returned.
     """
-    from kinematics.storage import read_trc
+    from kinematics.io.storage import read_trc
 
     tr = inputs.truth
     path = inputs.folder / "truth" / "static_centres.trc"
@@ -899,7 +899,7 @@ def angle_errors_against_truth(inputs: SubjectInputs, ik_results: dict, rotation
     offset : dict coordinate -> mean (q_IK - q_true) deg, the constant part of the error (e.g. a
         personalised joint frame whose zero differs from the truth's)
     """
-    from kinematics.storage import read_mot
+    from kinematics.io.storage import read_mot
 
     names = [k for k in ik_results if k.startswith("gait")] or [k for k in ik_results if k != "static"
                                                                  and not k.startswith("functional")]
@@ -960,7 +960,7 @@ def fit_knee_laws(pm, trials: list, say=lambda m: None, standing: dict | None = 
 
     Model: the personalised model without its knee couplings (translations
     free within +-3 cm); IK of `trials`; then per side the least-squares law
-    t = c_flex flexion + c_0 (`kinematics.correlative.fit_law`).
+    t = c_flex flexion + c_0 (`kinematics.mechanisms.correlative.fit_law`).
     Skin markers move over the bones by more than the knee translations, so a
     fitted law is kept only when its slopes are physiological
     (`KNEE_LAW_LIMITS`); otherwise the default law is used.  Only the
@@ -975,8 +975,8 @@ def fit_knee_laws(pm, trials: list, say=lambda m: None, standing: dict | None = 
     -------
     dict side -> (CorrelativeLaw, provenance text)
     """
-    from kinematics.correlative import CorrelativeLaw, fit_law
-    from kinematics.ik import solve_ik
+    from kinematics.mechanisms.correlative import CorrelativeLaw, fit_law
+    from kinematics.algorithms.ik import solve_ik
 
     from .model_builder import default_knee_law
 
@@ -1046,15 +1046,15 @@ def _bone_meshes_lab(surfaces: dict, est: JointEstimates, sides) -> dict:
 
 
 def _chain_blend(inputs: SubjectInputs, stage: Path, notes: list, with_truth: bool) -> dict:
-    """Per-frame Gaussian blend of the hip-first and foot-first chains of every dynamic trial (`kinematics.chain_blend`).
+    """Per-frame Gaussian blend of the hip-first and foot-first chains of every dynamic trial (`kinematics.gait.chain_blend`).
 
     Writes ``kinematics/<trial>_chains.mot`` (Plug-in-Gait angles of the blended segments, deg) and
     ``kinematics/<trial>_chain_weights.sto`` (the foot-to-hip chain's weight per segment); returns the median
     weights and, for phantoms, the angle RMSE of each chain and of the blend against the true Plug-in-Gait angles
     of the gait trials (``truth/<trial>_angles.mot``).
     """
-    from kinematics.reconstruction import ANGLE_COLUMNS, reconstruct
-    from kinematics.storage import read_mot, write_mot, write_sto
+    from kinematics.gait.reconstruction import ANGLE_COLUMNS, reconstruct
+    from kinematics.io.storage import read_mot, write_mot, write_sto
 
     func = inputs.trials.get(inputs.functional) if inputs.functional else None
     out: dict = {"median_foot_to_hip_weight": {}, "files": "kinematics/<trial>_chains.mot (deg), "
@@ -1298,8 +1298,8 @@ def _refusal_page(stage: Path, subject_dir, kind: str, text: str) -> None:
 
 def _run_subject(subject_dir, out, *, seed: int = 0, progress=None, report: bool = True) -> dict:
     """`run_subject` without the refusal report."""
-    from kinematics.ik import solve_ik
-    from kinematics.storage import write_mot, write_sto
+    from kinematics.algorithms.ik import solve_ik
+    from kinematics.io.storage import write_mot, write_sto
 
     from .frames import joints_document, joints_from_landmarks, without_model_error
     from .landmarks import detect_landmarks

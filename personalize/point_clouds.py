@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .errors import InputError
+from lowerlimb.errors import InputError
 
 __all__ = ["read_point_cloud", "reconstruct_surface", "sampling_sd_m", "add_sampling_uncertainty", "MIN_POINTS",
            "ARTICULAR_RADIUS_M"]

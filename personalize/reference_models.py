@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 
 __all__ = ["ReferenceJoint", "read_reference_joints", "compare_joints", "error_rows", "calibrate_model_error", "coverage",
            "CHECKED_FRAMES"]

@@ -5,7 +5,7 @@ Model
 Each landmark p_k (scanner frame, m) with a marker counterpart is moved out of
 the bone along its outward surface normal n_k by the soft-tissue thickness plus
 the marker radius, q_k = p_k + d_k n_k (the thickness is measured along the
-bone normal; its prior mean and sd per site come from `kinematics.soft_tissue`,
+bone normal; its prior mean and sd per site come from `kinematics.gait.soft_tissue`,
 see `skin_prior`), and maps to the measured marker centre
 
     m_k = c + exp([ω]×) (R̂ q_k + t̂ - c) + δ + ε_k,   ε_k ~ N(0, Σ_k),
@@ -42,10 +42,10 @@ import numpy as np
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from kinematics.soft_tissue import DEFAULT_TISSUE, tissue_prior
+from kinematics.gait.soft_tissue import DEFAULT_TISSUE, tissue_prior
 
-from .bones import mirror_name
-from .errors import InputError
+from lowerlimb.bones import mirror_name
+from lowerlimb.errors import InputError
 
 __all__ = [
     "Registration", "SegmentRegistrations", "register_landmarks", "register_segments", "static_marker_positions", "express_in_frame",
@@ -53,7 +53,7 @@ __all__ = [
     "passes_gate",
 ]
 
-#: soft-tissue thickness (m) and sd of a site absent from the per-site table `kinematics.soft_tissue`
+#: soft-tissue thickness (m) and sd of a site absent from the per-site table `kinematics.gait.soft_tissue`
 #: (an assumption, not a measured value); `skin_prior` gives each marker's (mean, sd) prior
 SKIN_THICKNESS = DEFAULT_TISSUE.mean
 SKIN_THICKNESS_SD = DEFAULT_TISSUE.sd
@@ -537,7 +537,7 @@ def static_marker_positions(trial, names=None, placement_sd: float = MARKER_PLAC
 def skin_prior(marker: str) -> tuple[float, float]:
     """Prior (mean, sd), m, of the soft tissue between `marker`'s bony landmark and the skin, along the bone normal.
 
-    From the per-site table `kinematics.soft_tissue.SOFT_TISSUE_THICKNESS` (ASIS 9.7 ± 7.0 mm,
+    From the per-site table `kinematics.gait.soft_tissue.SOFT_TISSUE_THICKNESS` (ASIS 9.7 ± 7.0 mm,
     PSIS 19.6 ± 10.9 mm from pelvic CT, Mantovani et al. 2016; other sites assumed), else
     (`SKIN_THICKNESS`, `SKIN_THICKNESS_SD`).
     """
@@ -666,7 +666,7 @@ def register_segments(landmarks: dict, static_trial, *, sides=("r", "l"), segmen
     Parameters
     ----------
     landmarks : dict, landmarks.json content (units m, scanner frame)
-    static_trial : kinematics.markers.MarkerTrial
+    static_trial : kinematics.io.markers.MarkerTrial
     segments : names to register (e.g. ``("pelvis", "femur_r")``); default all
     on_missing : ``"raise"`` (default) or ``"skip"``: what to do with a
         segment that has fewer than 3 correspondences (skipped ones are

@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-from kinematics.atomic import atomic_path, write_text
-from kinematics.errors import InputError
+from lowerlimb.atomic import atomic_path, write_text
+from lowerlimb.errors import InputError
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from .errors import InputError
+from lowerlimb.errors import InputError
 
 __all__ = ["SkinThickness", "measure_skin_thickness", "measure_pelvis_skin", "PELVIS_SKIN_MARKERS",
            "MAX_THICKNESS", "POSTURE_SD"]

@@ -39,7 +39,7 @@ import numpy as np
 import scipy.ndimage as ndi
 import trimesh
 
-from .errors import InputError
+from lowerlimb.errors import InputError
 from .io import (LabelVolume, is_label_volume_path, read_label_volume, read_mesh_folder_detailed,
                  PLAUSIBLE_EXTENT_M)
 

@@ -36,8 +36,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from kinematics.atomic import inside, staged_dir, write_text
-from kinematics.errors import InputError
+from lowerlimb.atomic import inside, staged_dir, write_text
+from lowerlimb.errors import InputError
 
 from .cohort import DEFAULT_JOB, BatchResult, Subject, resolve_job, run_batch, write_manifest
 
@@ -693,7 +693,7 @@ def realistic_validation_job(subject_dir: Path, out: Path, progress: Callable[[s
 
 def _truth_centres_static_lab(subject_dir: Path) -> dict | None:
     """True hip/knee/ankle centres in the static lab (truth/static_centres.trc, median over frames)."""
-    from kinematics.storage import read_trc
+    from kinematics.io.storage import read_trc
 
     p = subject_dir / "truth" / "static_centres.trc"
     if not p.is_file():

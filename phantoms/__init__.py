@@ -10,7 +10,7 @@ Two kinds of anatomy:
 
 * real: `phantoms.real_anatomy.load_real_anatomy` takes a subject's bone meshes and an
   expert-built model of them as the truth skeleton, and `phantoms.real_subject.write_real_subject`
-  writes its subject folder through any marker set (`kinematics.marker_sets`), lab
+  writes its subject folder through any marker set (`kinematics.io.marker_sets`), lab
   (`phantoms.lab`) and body build (`phantoms.marker_placement`).
 """
 from .anatomy import Phantom, PhantomParams, make_phantom

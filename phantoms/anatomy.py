@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from personalize.bones import BONE_NAMES, mirror_name
+from lowerlimb.bones import BONE_NAMES, mirror_name
 
 from .sdf import (
     SDF, CappedCylinder, Difference, Ellipsoid, Intersection, Offset, RoundCone, Sphere,
@@ -180,7 +180,7 @@ _RIGHTWARD_AXES = {"knee_axis", "ankle_axis", "mtp_axis"}
 
 
 def _check_params(p: PhantomParams) -> None:
-    from kinematics.errors import InputError
+    from lowerlimb.errors import InputError
 
     if not (1.2 <= p.stature <= 2.3):
         raise InputError("stature", f"{p.stature} m is outside 1.2-2.3 m (give metres)")
@@ -673,7 +673,7 @@ class Phantom:
     placement : ndarray (4, 4)
         ``scanner_from_body`` rigid transform, metres.
     bone_names : tuple of str
-        Canonical names of the bones present (see `personalize.bones`).
+        Canonical names of the bones present (see `lowerlimb.bones`).
     body_from_local : dict[str, ndarray (4, 4)]
         Standing-pose transform of each bone's local (construction) frame; left
         bones include the sagittal reflection (determinant -1).
@@ -691,13 +691,13 @@ class Phantom:
             elif params.placement == "random":
                 placement = random_placement(np.random.default_rng([int(seed), 7]))
             else:
-                from kinematics.errors import InputError
+                from lowerlimb.errors import InputError
                 raise InputError("placement", f"unknown placement {params.placement!r} (random, identity or a 4x4 matrix)")
         else:
             placement = np.asarray(params.placement, float)
             R = placement[:3, :3]
             if placement.shape != (4, 4) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-                from kinematics.errors import InputError
+                from lowerlimb.errors import InputError
                 raise InputError("placement", "must be a 4x4 rigid transform (rotation + translation, metres)")
         self.placement = placement
         self.params = replace(params, placement=placement)
@@ -716,7 +716,7 @@ class Phantom:
         try:
             return self._bones[bone]
         except KeyError:
-            from kinematics.errors import InputError
+            from lowerlimb.errors import InputError
             raise InputError(bone, f"not a bone of this phantom ({', '.join(self.bone_names)})") from None
 
     def local_sdf(self, bone: str) -> SDF:
@@ -799,7 +799,7 @@ class Phantom:
             D = new @ np.linalg.inv(old.body_from_local)
             R = D[:3, :3]
             if new.shape != (4, 4) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9) or np.linalg.det(R) < 0:
-                from kinematics.errors import InputError
+                from lowerlimb.errors import InputError
                 raise InputError(bone, "the new transform must be a rigid motion of the standing one")
             b = _Bone(old.sdf, new)
             b.landmarks = {k: _apply(D, v) for k, v in old.landmarks.items()}
@@ -906,7 +906,7 @@ def make_phantom(seed: int = 0, side: str = "both", **overrides) -> Phantom:
     **overrides
         Fields of `PhantomParams`.
     """
-    from kinematics.errors import InputError
+    from lowerlimb.errors import InputError
 
     if side not in ("both", "r", "l"):
         raise InputError("side", f"{side!r} is not one of both, r, l")

@@ -82,7 +82,7 @@ def stance_plates(cop: np.ndarray, foot: np.ndarray, lab, max_plates: int = 4):
     for a, b, side in runs[:max_plates]:
         c = cop[a:b + 1].mean(axis=0)
         hx, hy = PLATE_SIZE[0] / 2, PLATE_SIZE[1] / 2
-        # c1..c4 such that X = c1 - c2 (forward) and Z = X x (c1 - c4) is up (kinematics.forceplates)
+        # c1..c4 such that X = c1 - c2 (forward) and Z = X x (c1 - c4) is up (kinematics.io.forceplates)
         corners = np.array([c + hx * fwd + hy * left, c - hx * fwd + hy * left,
                             c - hx * fwd - hy * left, c + hx * fwd - hy * left])
         plates.append((corners, c, side, a, b))
@@ -93,7 +93,7 @@ def add_force_plates(c3d_path, force, cop, foot, lab, rate: float, *, max_plates
     """Add type-2 force platforms to the C3D at `c3d_path` (rewritten atomically); returns the plates' truth."""
     import ezc3d
 
-    from kinematics.atomic import atomic_path
+    from lowerlimb.atomic import atomic_path
 
     plates = stance_plates(cop, foot, lab, max_plates)
     F = force.shape[0]

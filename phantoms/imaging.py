@@ -48,9 +48,9 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from kinematics.atomic import atomic_path, write_text
-from kinematics.errors import InputError
-from personalize.bones import DEFAULT_LABEL_MAP, DEFAULT_TISSUE_LABEL, TISSUE_LABEL_NAME
+from lowerlimb.atomic import atomic_path, write_text
+from lowerlimb.errors import InputError
+from lowerlimb.bones import DEFAULT_LABEL_MAP, DEFAULT_TISSUE_LABEL, TISSUE_LABEL_NAME
 
 from .anatomy import Phantom
 from .grid import sample_grid
@@ -456,9 +456,9 @@ def write_phantom(out_dir: str | os.PathLike, ph: Phantom, voxel=(1e-3, 1e-3, 1e
     the exact meshes stay whole).
 
     Returns the written paths by role.  Files are written atomically; use
-    `kinematics.atomic.staged_dir` around this call to publish the folder at once.
+    `lowerlimb.atomic.staged_dir` around this call to publish the folder at once.
     """
-    from kinematics.atomic import inside
+    from lowerlimb.atomic import inside
 
     out = Path(out_dir)
     labels, affine, label_map = label_volume(ph, voxel=voxel, noise=noise, seed=seed, fov=fov, bones=bones,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 
 __all__ = ["Lab", "make_lab", "LAB_UPS"]
 

@@ -52,8 +52,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kinematics.errors import InputError
-from kinematics.marker_sets import MarkerSet
+from lowerlimb.errors import InputError
+from kinematics.io.marker_sets import MarkerSet
 
 __all__ = ["TISSUE_CLASSES", "PALPATION_SD_MM", "MARKER_RADIUS", "PlacedMarker", "find_landmarks",
            "place_markers", "draw_tissue"]
@@ -133,7 +133,7 @@ class _Standing:
     """Body poses and joint frames of the standing pose in the model ground frame."""
 
     def __init__(self, anat, q):
-        from kinematics.fk import forward_kinematics
+        from kinematics.algorithms.fk import forward_kinematics
 
         self.anat, self.model = anat, anat.model
         st = forward_kinematics(self.model, q)

@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from kinematics.markers import MarkerTrial
+from kinematics.io.markers import MarkerTrial
 
 from .skeleton import DEVICE_MARKERS, EXTRA_MARKERS, PIG_MARKERS, SIDES, PhantomSkeleton, phantom_skeleton
 
@@ -400,7 +400,7 @@ def make_trials(ph, seed: int = 0, *, rate: float = 100.0, gait_trials: int = 2,
     -------
     (PhantomSkeleton, list of PhantomTrial, SoftTissueModel or None)
     """
-    from kinematics.errors import InputError
+    from lowerlimb.errors import InputError
 
     if not (1.0 <= rate <= 2000.0):
         raise InputError("rate", f"{rate} Hz is outside 1-2000 Hz")
@@ -493,13 +493,13 @@ def write_trials(out_dir, ph, seed: int = 0, *, progress=None, lab=None, static_
     dict with ``knee_law_r``, ``knee_law_l`` (CorrelativeLaw.to_json schema) and ``motion``
     (lab frame, trials, STA amplitudes, noise).
     """
-    from kinematics.atomic import inside, write_text
-    from kinematics.c3d import write_c3d
-    from kinematics.storage import write_mot, write_sto, write_trc
+    from lowerlimb.atomic import inside, write_text
+    from kinematics.io.c3d import write_c3d
+    from kinematics.io.storage import write_mot, write_sto, write_trc
 
     out = Path(out_dir)
     if trial_format not in ("c3d", "trc", "both"):
-        from kinematics.errors import InputError
+        from lowerlimb.errors import InputError
 
         raise InputError("--format", f"{trial_format!r} is not one of c3d, trc, both")
     sk, trials, stm = make_trials(ph, seed, **kw)
@@ -534,7 +534,7 @@ def write_trials(out_dir, ph, seed: int = 0, *, progress=None, lab=None, static_
         write_trc(inside(truth, f"{tr.name}_centres.trc"), ct)
         write_trc(inside(truth, f"{tr.name}_markers.trc"),
                   MarkerTrial(tr.markers.names, rot(tr.clean), tr.markers.rate, tr.time, f"{tr.name}_markers.trc"))
-        from kinematics.pig import SegmentPose
+        from kinematics.gait.pig import SegmentPose
 
         poses = {k: SegmentPose(rot(v.origin), np.einsum("ij,fjk->fik", Rl, v.axes))
                  for k, v in sk.segment_poses(st).items()}

@@ -43,7 +43,7 @@ from typing import Callable
 
 import numpy as np
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 
 __all__ = ["RealAnatomy", "load_real_anatomy", "pelvis_symmetry", "mesh_label_volume", "D_MIRROR", "SEGMENT_BONES"]
 
@@ -77,7 +77,7 @@ class RealAnatomy:
     meshes : dict bone -> trimesh.Trimesh, scanner frame, metres (the mirrored side included)
     local_meshes : dict bone -> trimesh.Trimesh in its body's local frame (metres)
     bone_body : dict bone -> body name
-    model : kinematics.model.Model, the truth skeleton (no markers, model ground: X forward, Y up, Z right)
+    model : kinematics.multibody.model.Model, the truth skeleton (no markers, model ground: X forward, Y up, Z right)
     mirrored : tuple of bone names made by mirroring; symmetry : (M (3, 3), c (3,)) or None
     scan_q : (n_q,) joint coordinates of the scan pose (pelvis coordinates 0)
     joints_scanner : dict joint -> (origin (3,), rotation (3, 3)) parent-side joint frames at the scan pose
@@ -203,7 +203,7 @@ def pelvis_symmetry(vertices: np.ndarray, origin: np.ndarray, normal: np.ndarray
 
 
 def _mirror_transform(T, in_pelvis: bool, M, c):
-    from kinematics.joints import Transform
+    from kinematics.multibody.joints import Transform
 
     if in_pelvis:
         return Transform(M @ T.rotation @ D_MIRROR, M @ T.translation + c)
@@ -218,7 +218,7 @@ def _scan_coordinates(model, bodies_identity) -> np.ndarray:
     """Coordinates putting every body of `bodies_identity` at the identity pose relative to the pelvis."""
     from scipy.optimize import least_squares
 
-    from kinematics.fk import forward_kinematics
+    from kinematics.algorithms.fk import forward_kinematics
 
     q = np.zeros(model.n_q)
     pel = model.body_index("pelvis")
@@ -261,9 +261,9 @@ def load_real_anatomy(anatomy_dir: str | os.PathLike, reference: str | os.PathLi
     """
     import trimesh
 
-    from kinematics.joints import CustomJoint, TransformAxis
-    from kinematics.model import Body, Coordinate, Model
-    from kinematics.opensim_io import load_osim
+    from kinematics.multibody.joints import CustomJoint, TransformAxis
+    from kinematics.multibody.model import Body, Coordinate, Model
+    from kinematics.io.opensim_io import load_osim
 
     say = progress or (lambda m: None)
     folder = Path(anatomy_dir)
@@ -424,7 +424,7 @@ def load_real_anatomy(anatomy_dir: str | os.PathLike, reference: str | os.PathLi
 
 
 def _linear():
-    from kinematics.functions import Linear
+    from kinematics.multibody.functions import Linear
 
     return Linear()
 

@@ -3,7 +3,7 @@
 `write_real_subject` writes what a gait lab and a radiology department hand
 over for one subject whose skeleton is an expert-built model of real bones
 (`phantoms.real_anatomy`), seen through any marker set
-(`kinematics.marker_sets`), in any lab orientation (`phantoms.lab`), with
+(`kinematics.io.marker_sets`), in any lab orientation (`phantoms.lab`), with
 body-build soft tissue and palpation error (`phantoms.marker_placement`).
 
 Motion (model coordinates, gait2392 names; the expert's joint axes):
@@ -34,9 +34,9 @@ from typing import Callable
 
 import numpy as np
 
-from kinematics.errors import InputError
-from kinematics.marker_sets import MarkerDef, MarkerSet, resolve_marker_set
-from kinematics.markers import MarkerTrial
+from lowerlimb.errors import InputError
+from kinematics.io.marker_sets import MarkerDef, MarkerSet, resolve_marker_set
+from kinematics.io.markers import MarkerTrial
 
 from .lab import Lab, make_lab
 from .marker_placement import PlacedMarker, place_markers
@@ -50,7 +50,7 @@ _X, _Y, _Z = np.eye(3)
 
 
 def _fk(model, q):
-    from kinematics.fk import forward_kinematics
+    from kinematics.algorithms.fk import forward_kinematics
 
     return forward_kinematics(model, np.atleast_2d(q))
 
@@ -233,7 +233,7 @@ def segment_bodies(anat: RealAnatomy, mass: float):
     """
     import trimesh
 
-    from kinematics.model import Body
+    from kinematics.multibody.model import Body
 
     m = anat.model
     has_toes = any(b.name.startswith("toes_") for b in m.bodies)
@@ -264,8 +264,8 @@ def truth_model(anat: RealAnatomy, lab: Lab, placed: dict[str, PlacedMarker] | N
 
     With `mass` (kg) the bodies get `segment_bodies` mass properties.
     """
-    from kinematics.joints import CustomJoint, Transform
-    from kinematics.model import Marker
+    from kinematics.multibody.joints import CustomJoint, Transform
+    from kinematics.multibody.model import Marker
 
     m = anat.model
     if mass is not None:
@@ -338,7 +338,7 @@ def make_real_trials(anat: RealAnatomy, lab: Lab, placed: dict, q0, signs, seed:
                      sta: bool = True, sta_scale: float = 1.0, noise_sd: float = 0.0005,
                      static_only: tuple = (), smooth_hz: float | None = None) -> list[RealTrial]:
     """Static, gait and (optionally) functional trials of the placed markers (no file written)."""
-    from kinematics.fk import point_positions
+    from kinematics.algorithms.fk import point_positions
 
     model = truth_model(anat, lab, placed)
     labels = [p for p in placed]
@@ -376,7 +376,7 @@ def make_real_trials(anat: RealAnatomy, lab: Lab, placed: dict, q0, signs, seed:
 
 
 def _save_truth_osim(model, anat: RealAnatomy, path: Path, geometry_dir: Path | None):
-    from kinematics.opensim_io import import_opensim, to_opensim, write_osim
+    from kinematics.io.opensim_io import import_opensim, to_opensim, write_osim
 
     om = to_opensim(model)
     if geometry_dir is not None:
@@ -400,18 +400,18 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
                        noise_sd: float = 0.0005, palpation: bool = True, rate: float = 100.0,
                        mesh_folder: str = "meshes", force_plates: bool = False,
                        progress: Callable[[str], None] | None = None) -> dict:
-    """Write a real-anatomy phantom subject into `out_dir` (stage it with `kinematics.atomic.staged_dir`).
+    """Write a real-anatomy phantom subject into `out_dir` (stage it with `lowerlimb.atomic.staged_dir`).
 
     Files: ``labels.nii.gz`` + ``label_map.json`` (voxelised meshes, scanner frame), ``meshes/<bone>.ply``
     (mm, scanner), trials ``<static_name>.c3d|.trc``, ``gait_NN``, ``functional_hip`` (lab frame, mm),
-    ``markers.json`` (`kinematics.marker_sets`), ``subject.json`` (SI), ``truth_model.osim`` (ground = lab,
+    ``markers.json`` (`kinematics.io.marker_sets`), ``subject.json`` (SI), ``truth_model.osim`` (ground = lab,
     the placed markers, ``geometry/<bone>.stl`` in body frames), ``truth.json`` (m) and ``truth/``
     (``<trial>.mot`` true coordinates and knee_flexion_<s>, ``<trial>_centres.trc`` true hip/knee/ankle centres,
     ``<trial>_markers.trc`` artefact-free noise-free markers; lab frame).
 
     Parameters
     ----------
-    marker_set : preset name, markers.json path or `kinematics.marker_sets.MarkerSet`
+    marker_set : preset name, markers.json path or `kinematics.io.marker_sets.MarkerSet`
     lab : `phantoms.lab.Lab` or ``"z-up"``/``"y-up"`` (with `walk`, e.g. ``"+x"``)
     build : ``child``, ``adult`` or ``obese`` (soft tissue, `phantoms.marker_placement`)
     fibula_mesh : write the fibula as its own bone; False: the fibula is a second component of the tibia
@@ -429,10 +429,10 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     """
     import trimesh
 
-    from kinematics.atomic import inside, write_text
-    from kinematics.c3d import write_c3d
-    from kinematics.marker_sets import write_marker_set
-    from kinematics.storage import write_mot, write_trc
+    from lowerlimb.atomic import inside, write_text
+    from kinematics.io.c3d import write_c3d
+    from kinematics.io.marker_sets import write_marker_set
+    from kinematics.io.storage import write_mot, write_trc
 
     from .imaging import write_label_nifti, write_ply_mm
     from .real_anatomy import mesh_label_volume
@@ -502,7 +502,7 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
         if trial_format in ("c3d", "both"):
             write_c3d(inside(out, f"{stem}.c3d"), tr.markers)
             if force_plates and tr.kind == "gait":
-                from kinematics.storage import write_sto
+                from kinematics.io.storage import write_sto
 
                 from .force_plates import add_force_plates, ground_reaction
 

@@ -24,7 +24,7 @@ Plug-in-Gait convention (x anterior, y left, z proximal):
   knee axis made orthogonal to z (Plug-in-Gait's "untorsioned" tibia).
 
 and the hip and knee rotations are the Plug-in-Gait Y-X'-Z'' Cardan angles
-(``kinematics.pig.joint_angles``) of these frames, signed as Nexus reports
+(``kinematics.gait.pig.joint_angles``) of these frames, signed as Nexus reports
 them: ``hip_flexion_r`` etc. ARE the true Plug-in-Gait hip/knee angles.
 The true ankle angles use the torsioned tibia (y along the true ankle axis)
 and a calcaneus-fixed foot frame (z from the toe to the heel marker sites).
@@ -36,14 +36,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinematics.correlative import CorrelativeLaw
-from kinematics.fk import forward_kinematics, point_positions
-from kinematics.joints import CustomJoint, Transform, TransformAxis, free, revolute
-from kinematics.functions import Linear
-from kinematics.model import Body, Coordinate, Marker, Model
-from kinematics.pig import SegmentPose, joint_angles, pelvis_frame
-from kinematics.soft_tissue import draw_thickness
-from kinematics.subject import SubjectMeasurements
+from kinematics.mechanisms.correlative import CorrelativeLaw
+from kinematics.algorithms.fk import forward_kinematics, point_positions
+from kinematics.multibody.joints import CustomJoint, Transform, TransformAxis, free, revolute
+from kinematics.multibody.functions import Linear
+from kinematics.multibody.model import Body, Coordinate, Marker, Model
+from kinematics.gait.pig import SegmentPose, joint_angles, pelvis_frame
+from kinematics.gait.soft_tissue import draw_thickness
+from kinematics.gait.subject import SubjectMeasurements
 
 __all__ = ["LAB_FROM_BODY", "Site", "PhantomSkeleton", "phantom_skeleton", "pelvis_tissue_thickness", "pelvis_skin_sites", "SIDES", "MARKER_RADIUS",
            "PIG_MARKERS", "EXTRA_MARKERS", "DEVICE_MARKERS"]
@@ -86,7 +86,7 @@ class PhantomSkeleton:
 
     Attributes
     ----------
-    model : kinematics.model.Model
+    model : kinematics.multibody.model.Model
         Bodies, joints, 28 coordinates, the STA-free marker sites as markers,
         and the knee laws as linear couplings.
     standing_q : ndarray (n_q,)
@@ -102,9 +102,9 @@ class PhantomSkeleton:
         femur frame) as linear functions of (knee_flexion, knee_adduction, knee_rotation) (rad).
     subject : SubjectMeasurements
         What a gait lab would measure on this subject (tape and calliper on the skin).
-    tibial_torsion : dict side -> rad, in Plug-in-Gait's convention (`kinematics.pig.tibia_frame`).
+    tibial_torsion : dict side -> rad, in Plug-in-Gait's convention (`kinematics.gait.pig.tibia_frame`).
     tissue_thickness : dict site (``ASI``, ``PSI``, ``KNE``...) -> m, this subject's skin-to-bone distance
-        under the marker (pelvis: drawn around `kinematics.soft_tissue`, along the bone's outward normal).
+        under the marker (pelvis: drawn around `kinematics.gait.soft_tissue`, along the bone's outward normal).
     """
 
     model: Model
@@ -229,7 +229,7 @@ def _sdf_normal_body(ph, bone: str, p_body: np.ndarray, h: float = 2e-4) -> np.n
 def pelvis_tissue_thickness(seed: int) -> dict:
     """The subject's soft tissue (m) over the ASIS and PSIS (``{"ASI": t, "PSI": t}``, both sides share it).
 
-    Drawn around the population table (`kinematics.soft_tissue.draw_thickness`) from the stream
+    Drawn around the population table (`kinematics.gait.soft_tissue.draw_thickness`) from the stream
     ``default_rng([seed, 7])``: the same numbers for the markers (`phantom_skeleton`) and for the
     skin envelope of the label volume (`phantoms.imaging.label_volume`).
     """
@@ -267,7 +267,7 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
     -------
     PhantomSkeleton
     """
-    from kinematics.errors import InputError
+    from lowerlimb.errors import InputError
 
     if "femur_r" not in ph.bone_names or "femur_l" not in ph.bone_names:
         raise InputError("phantom", "the motion phantoms need both legs (make_phantom(side='both'))")
@@ -296,7 +296,7 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         body_of[name] = body
 
     # Pelvis markers: soft tissue measured along the bone's outward normal (as CT/MRI/ultrasound measure it),
-    # one thickness per site and subject drawn around the population table (kinematics.soft_tissue; both
+    # one thickness per site and subject drawn around the population table (kinematics.gait.soft_tissue; both
     # sides share it), from its own stream so the knee laws do not change with it.
     tissue.update(pelvis_tissue_thickness(seed))
     for S in ("R", "L"):
@@ -379,7 +379,7 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         frames[f"tibia_torsioned_{s}"] = _pose_frame(j["A"], j["K"] - j["A"], aleft)
         Rt, Rtt = frames[f"tibia_{s}"][1], frames[f"tibia_torsioned_{s}"][1]
         xa = Rt.T @ Rtt[:, 0]                       # torsioned x in the untorsioned frame
-        tors[s] = float(np.arctan2(-xa[1], xa[0]))  # x' = cos t x - sin t y (kinematics.pig.tibia_frame)
+        tors[s] = float(np.arctan2(-xa[1], xa[0]))  # x' = cos t x - sin t y (kinematics.gait.pig.tibia_frame)
         S = s.upper()
         toe, hee = sites_lab[f"{S}TOE"], sites_lab[f"{S}HEE"]
         zfo = _unit(hee - toe)

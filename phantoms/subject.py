@@ -20,7 +20,7 @@ def write_subject(out_dir: str | os.PathLike, ph: Phantom, *, voxel=(1e-3, 1e-3,
                   bones: Iterable[str] | None = None, meshes: bool = True,
                   progress: Callable[[str], None] | None = None, skin: bool = True,
                   physes: float = 0.0) -> dict[str, Path]:
-    """Write a phantom subject folder into `out_dir` (stage it with `kinematics.atomic.staged_dir`).
+    """Write a phantom subject folder into `out_dir` (stage it with `lowerlimb.atomic.staged_dir`).
 
     Parameters
     ----------

@@ -12,7 +12,7 @@ def label_volume_job(subject_dir: Path, out: Path, progress=None) -> dict:
     """Bone volumes from the label volume (voxel count x voxel volume) and from the exact meshes, ml."""
     import trimesh
 
-    from kinematics.atomic import write_text
+    from lowerlimb.atomic import write_text
     from personalize.io import read_label_volume
 
     vol = read_label_volume(Path(subject_dir) / "labels.nii.gz")  # InputError for a corrupt file

@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+# the paper-reproduction experiments live in benchmarks/ (research code, not the library)
+sys.path.insert(0, str(REPO / "benchmarks"))
 SHARED_DATA = Path(os.environ.get("PERSONALIZE_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 

@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinematics.functions import Linear, Multiplier, SimmSpline
-from kinematics.joints import (CustomJoint, ExpMapSpherical, SwingJoint, Transform, TransformAxis, free, prismatic,
+from kinematics.multibody.functions import Linear, Multiplier, SimmSpline
+from kinematics.multibody.joints import (CustomJoint, ExpMapSpherical, SwingJoint, Transform, TransformAxis, free, prismatic,
                                revolute, spherical, universal, weld)
-from kinematics.model import Body, Coordinate, Marker, Model
+from kinematics.multibody.model import Body, Coordinate, Marker, Model
 
 KNEE_X = SimmSpline([-2.0944, -1.74533, -1.39626, -1.0472, -0.698132, -0.349066, -0.174533, 0.197344, 0.337395],
                     [-0.0032, 0.00179, 0.00411, 0.0041, 0.00212, -0.001, -0.0031, -0.005227, -0.005435])

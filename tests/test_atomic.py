@@ -6,8 +6,8 @@ import stat
 
 import pytest
 
-from kinematics.atomic import atomic_path, inside, staged_dir, write_text
-from kinematics.errors import InputError
+from lowerlimb.atomic import atomic_path, inside, staged_dir, write_text
+from lowerlimb.errors import InputError
 
 
 def test_atomic_path_publishes_only_on_success(tmp_path):

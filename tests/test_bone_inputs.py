@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from personalize.cli import main
-from personalize.errors import InputError
+from lowerlimb.errors import InputError
 from personalize.io import _load_mesh_file, read_mesh_folder_detailed
 
 
@@ -159,7 +159,7 @@ def test_tibia_named_femur_and_mirrored_femur_are_refused(shared_data, tmp_path,
 def test_swapped_label_map_is_refused(tmp_path, capsys):
     from phantoms.anatomy import make_phantom
     from phantoms.imaging import label_volume
-    from personalize.bones import mirror_name
+    from lowerlimb.bones import mirror_name
 
     lab, aff, lmap = label_volume(make_phantom(seed=3), voxel=(2e-3,) * 3, bones=["femur_l"])
     img = nib.Nifti1Image(lab.astype(np.int16), aff)

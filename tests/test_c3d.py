@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.c3d import fill_gaps, read_c3d, read_c3d_outputs, write_c3d
-from kinematics.errors import InputError
-from kinematics.markers import MarkerTrial
-from kinematics.subject import read_subject, read_vsk
+from kinematics.io.c3d import fill_gaps, read_c3d, read_c3d_outputs, write_c3d
+from lowerlimb.errors import InputError
+from kinematics.io.markers import MarkerTrial
+from kinematics.gait.subject import read_subject, read_vsk
 
 
 def _trial(F=200, rate=100.0):
@@ -87,7 +87,7 @@ def test_read_vsk(shared_data):
 
 
 def test_subject_json_round_trip_and_errors(tmp_path):
-    from kinematics.subject import SubjectMeasurements
+    from kinematics.gait.subject import SubjectMeasurements
 
     s = SubjectMeasurements(0.9, 0.9, 0.1, 0.1, 0.07, 0.07, inter_asis_distance=0.25, mass=70.0)
     p = tmp_path / "s.json"
@@ -107,7 +107,7 @@ def test_subject_json_round_trip_and_errors(tmp_path):
 
 
 def test_outputs_round_trip_in_degrees(tmp_path):
-    from kinematics.c3d import C3DOutputs
+    from kinematics.io.c3d import C3DOutputs
 
     tr = _trial(F=20)
     ang = np.radians(np.stack([np.linspace(0, 60, 20), np.zeros(20), np.full(20, -5.0)], 1))

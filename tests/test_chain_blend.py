@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.chain_blend import segment_markers
-from kinematics.errors import InputError
-from kinematics.reconstruction import reconstruct
+from kinematics.gait.chain_blend import segment_markers
+from lowerlimb.errors import InputError
+from kinematics.gait.reconstruction import reconstruct
 from phantoms import make_phantom
 from phantoms.motion import make_trials
 

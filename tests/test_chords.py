@@ -1,16 +1,16 @@
-"""Distance chords and chord chains (muscle paths): kinematics.chords."""
+"""Distance chords and chord chains (muscle paths): kinematics.mechanisms.chords."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from kin_helpers import leg_model
-from kinematics.chords import Chord, ChordChain, ChordPath, PathTension
-from kinematics.dynamics import generalized_forces, inverse_dynamics
-from kinematics.errors import InputError
-from kinematics.fk import point_jacobian
-from kinematics.joints import Transform
-from kinematics.transmission import AppliedLoad, TransmissionChain
+from kinematics.mechanisms.chords import Chord, ChordChain, ChordPath, PathTension
+from kinematics.mechanisms.dynamics import generalized_forces, inverse_dynamics
+from lowerlimb.errors import InputError
+from kinematics.algorithms.fk import point_jacobian
+from kinematics.multibody.joints import Transform
+from kinematics.mechanisms.transmission import AppliedLoad, TransmissionChain
 
 
 @pytest.fixture(scope="module")
@@ -106,8 +106,8 @@ def test_moving_and_conditional_via_points(leg, poses):
     """A quadriceps-like path with a via point sliding with the knee angle (spline) and a conditional via point:
     dl/dq vs central differences, and the tension through the force pass (body loads plus the moving point's own
     generalised force) equals -(dl/dq)^T T."""
-    from kinematics.chords import MovingPoint, ViaCondition
-    from kinematics.functions import Constant, Linear
+    from kinematics.mechanisms.chords import MovingPoint, ViaCondition
+    from kinematics.multibody.functions import Constant, Linear
     from kin_helpers import KNEE_X
 
     quad = ChordPath("quad", ("pelvis", "thigh", "shank", "shank"),
@@ -146,8 +146,8 @@ def test_bad_paths_are_rejected(leg):
 def test_gait2392_muscle_paths_match_opensim(shared_data, opensim):
     """All 92 gait2392 muscle-tendon paths (fixed, conditional and moving via points): length, lengthening speed
     and moment arms (-dl/dq) against OpenSim's GeometryPath, with the knee flexed past the vasti's switches."""
-    from kinematics.chords import load_osim_paths
-    from kinematics.opensim_io import load_osim
+    from kinematics.mechanisms.chords import load_osim_paths
+    from kinematics.io.opensim_io import load_osim
 
     path = shared_data / "opensim_gait2392/subject01_simbody_adjusted.osim"
     model = load_osim(path)

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from kinematics.correlative import CorrelativeLaw, fit_law
-from kinematics.storage import read_sto, write_mot
+from kinematics.mechanisms.correlative import CorrelativeLaw, fit_law
+from kinematics.io.storage import read_sto, write_mot
 from personalize.cli import main
 
 IND = ["knee_flexion_r", "knee_adduction_r", "knee_rotation_r"]

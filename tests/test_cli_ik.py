@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from kin_helpers import leg_model
-from kinematics.fk import marker_positions
-from kinematics.markers import MarkerTrial
-from kinematics.storage import read_mot, read_sto, write_trc
+from kinematics.algorithms.fk import marker_positions
+from kinematics.io.markers import MarkerTrial
+from kinematics.io.storage import read_mot, read_sto, write_trc
 from personalize.cli import main
 
 GAIT = "opensim_gait2392"
@@ -15,7 +15,7 @@ GAIT = "opensim_gait2392"
 
 @pytest.fixture(scope="module")
 def leg_files(tmp_path_factory, opensim):
-    from kinematics.opensim_io import save_osim
+    from kinematics.io.opensim_io import save_osim
 
     d = tmp_path_factory.mktemp("cli_ik")
     m = leg_model()

@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from kinematics.c3d import read_c3d, write_c3d
-from kinematics.storage import read_mot, read_trc
+from kinematics.io.c3d import read_c3d, write_c3d
+from kinematics.io.storage import read_mot, read_trc
 from personalize.cli import main
 from phantoms import make_phantom
 from phantoms.motion import write_trials

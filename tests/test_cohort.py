@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 from personalize.cli import main
 from personalize.cohort import Subject, is_complete, read_batch_csv, read_manifest, run_batch
 
@@ -19,7 +19,7 @@ JOBS = "cohort_jobs"  # tests/cohort_jobs.py, importable by the workers (pytest 
 @pytest.fixture(scope="module")
 def phantom_subject(tmp_path_factory) -> Path:
     """One small phantom subject folder (femur_r only, 3 mm voxels) copied for every cohort test."""
-    from kinematics.atomic import staged_dir
+    from lowerlimb.atomic import staged_dir
     from phantoms import make_phantom
     from phantoms.imaging import write_phantom
 

@@ -12,9 +12,9 @@ from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 from scipy.special import erf
 
-from kinematics.correlative import (CorrelativeLaw, coefficient_table, deviation_table, fit_law, fit_laws_by_group,
+from kinematics.mechanisms.correlative import (CorrelativeLaw, coefficient_table, deviation_table, fit_law, fit_laws_by_group,
                                     knee_landmark_frame, plot_deviation, scale_factor, transfer_law)
-from kinematics.errors import FitError, InputError
+from lowerlimb.errors import FitError, InputError
 
 IND = ("knee_flexion_r", "knee_adduction_r", "knee_rotation_r")
 DEP = ("knee_tx_r", "knee_ty_r", "knee_tz_r")
@@ -280,7 +280,7 @@ def test_coefficient_table_and_plot(tmp_path):
 
 
 def test_fluoroscopy_knee_law(shared_data):
-    from kinematics.storage import read_sto
+    from kinematics.io.storage import read_sto
 
     tab = read_sto(shared_data / "knee_fluoroscopy" / "DM_fluoroscopic_gait_knee6dof.sto")
     # Rotation labels look swapped in this file: knee_rot_r (~48 deg range) behaves as flexion.
@@ -323,11 +323,11 @@ def test_law_as_coupling_in_ik_tracks_translations_better_than_a_free_joint():
     IK with the law as coupling rows recovers the joint translations more
     accurately than IK with an unconstrained six-DOF (free) knee.
     """
-    from kinematics.fk import marker_positions
-    from kinematics.ik import solve_ik
-    from kinematics.joints import Transform, free, weld
-    from kinematics.markers import MarkerTrial
-    from kinematics.model import Body, Coordinate, Marker, Model
+    from kinematics.algorithms.fk import marker_positions
+    from kinematics.algorithms.ik import solve_ik
+    from kinematics.multibody.joints import Transform, free, weld
+    from kinematics.io.markers import MarkerTrial
+    from kinematics.multibody.model import Body, Coordinate, Marker, Model
 
     names = IND + DEP
     coords = [Coordinate(n, "rotational", 0.0) for n in IND] + [Coordinate(n, "translational", 0.0) for n in DEP]

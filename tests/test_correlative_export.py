@@ -1,16 +1,16 @@
-"""OpenSim export of correlative joints (kinematics.correlative_export), verified in OpenSim 4.6."""
+"""OpenSim export of correlative joints (kinematics.mechanisms.correlative_export), verified in OpenSim 4.6."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from kinematics.correlative_experiments import free_knee_model
-from kinematics.correlative_export import (
+from correlative_experiments import free_knee_model
+from kinematics.mechanisms.correlative_export import (
     add_to_osim, correlative_function, export_correlative_model, polynomial_layout, verify_osim_law,
 )
-from kinematics.errors import InputError
-from kinematics.fk import marker_positions
-from kinematics.opensim_io import save_osim
+from lowerlimb.errors import InputError
+from kinematics.algorithms.fk import marker_positions
+from kinematics.io.opensim_io import save_osim
 from phantoms import make_phantom
 from phantoms.skeleton import phantom_skeleton
 

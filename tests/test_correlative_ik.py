@@ -1,18 +1,18 @@
-"""Correlative knee in IK (kinematics.correlative_experiments): the seed's section 4.1 on a small phantom."""
+"""Correlative knee in IK (correlative_experiments): the seed's section 4.1 on a small phantom."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from kinematics.correlative_experiments import (
+from correlative_experiments import (
     SEED_MARKERS, CorrelativeKnee, HingeKnee, compare_knees, fit_correlative_knee, fit_planar_spline_knee, free_knee_model,
     knee_coordinate_errors, knee_coordinates, compare_knees_by_sub_motion, knee_kinematics, knee_rotations, knee_translations, leg_model,
     score_results, score_trial, seed_protocol, select_frames, sub_motion_knees, summarize, track, train_knees,
     undetermined_coordinates, whole_body_protocol, with_knees,
 )
-from kinematics.fk import marker_positions
-from kinematics.errors import FitError, InputError
-from kinematics.ik import coordinate_map
+from kinematics.algorithms.fk import marker_positions
+from lowerlimb.errors import FitError, InputError
+from kinematics.algorithms.ik import coordinate_map
 from phantoms import make_phantom
 from phantoms.motion import make_trials
 

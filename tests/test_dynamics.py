@@ -1,18 +1,18 @@
-"""Inverse dynamics by composed transmission elements (kinematics.dynamics) against OpenSim and mechanics identities."""
+"""Inverse dynamics by composed transmission elements (kinematics.mechanisms.dynamics) against OpenSim and mechanics identities."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from kin_helpers import leg_model
-from kinematics.coupling import CoordinateCoupler, LinearCoupling
-from kinematics.dynamics import (generalized_forces, generalized_gravity, inverse_dynamics, mass_matrix,
+from kinematics.multibody.coupling import CoordinateCoupler, LinearCoupling
+from kinematics.mechanisms.dynamics import (generalized_forces, generalized_gravity, inverse_dynamics, mass_matrix,
                                  opensim_inverse_dynamics, reduce_generalized_forces)
-from kinematics.fk import com_jacobian, point_jacobian
-from kinematics.functions import SimmSpline
-from kinematics.ik import coordinate_map
-from kinematics.opensim_io import load_osim, to_opensim
-from kinematics.transmission import AppliedLoad, TransmissionChain
+from kinematics.algorithms.fk import com_jacobian, point_jacobian
+from kinematics.multibody.functions import SimmSpline
+from kinematics.algorithms.ik import coordinate_map
+from kinematics.io.opensim_io import load_osim, to_opensim
+from kinematics.mechanisms.transmission import AppliedLoad, TransmissionChain
 
 GAIT = "opensim_gait2392/subject01_simbody_adjusted.osim"
 
@@ -143,7 +143,7 @@ def test_reparametrised_forces_satisfy_virtual_work():
 
 
 def test_load_on_unknown_body_is_an_input_error(leg):
-    from kinematics.errors import InputError
+    from lowerlimb.errors import InputError
 
     with pytest.raises(InputError, match="no body 'femur_r'"):
         inverse_dynamics(leg, leg.default_q, loads=[AppliedLoad("femur_r", (0.0, 10.0, 0.0))])

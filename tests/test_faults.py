@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kinematics.c3d import read_c3d, write_c3d
-from kinematics.markers import MarkerTrial
-from kinematics.storage import read_trc, write_trc
+from kinematics.io.c3d import read_c3d, write_c3d
+from kinematics.io.markers import MarkerTrial
+from kinematics.io.storage import read_trc, write_trc
 from personalize.cli import main
 
 ROOT = os.geteuid() == 0 if hasattr(os, "geteuid") else False
@@ -269,7 +269,7 @@ def test_4_absurd_trc_value(capsys, shared_data, tmp_path):
 
 def test_4_synthetic_trc_and_c3d_values(tmp_path):
     """No shared data needed: an absurd TRC value, an infinite one, a C3D in metres holding millimetres."""
-    from kinematics.errors import InputError
+    from lowerlimb.errors import InputError
 
     rng = np.random.default_rng(0)
     tr = MarkerTrial(("A", "B", "C"), rng.uniform(-1, 1, (20, 3, 3)), 100.0, np.arange(20) / 100.0, "s")
@@ -469,7 +469,7 @@ def test_7_huge_xml_refused_before_parsing(capsys, tmp_path, shared_data):
 
 def test_7_long_xml_token_is_read(tmp_path):
     """A 5 MB attribute (one token longer than any parser chunk) is read, linearly, from one buffer."""
-    from kinematics.opensim_io import check_osim_file, read_xml
+    from kinematics.io.opensim_io import check_osim_file, read_xml
 
     p = tmp_path / "long.osim"
     p.write_text('<?xml version="1.0"?><OpenSimDocument Version="40000"><Model name="' + "m" * 5_000_000

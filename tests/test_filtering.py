@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
-from kinematics.filtering import (
+from lowerlimb.errors import InputError
+from kinematics.gait.filtering import (
     corrected_cutoff,
     derivatives,
     lowpass,
@@ -37,7 +37,7 @@ def test_winter_double_pass_is_minus_3db_at_cutoff_and_zero_lag(order):
 
 def test_opensim_method_matches_opensim_storage_filter(shared_data, opensim, tmp_path):
     """OpenSim's InverseDynamicsTool filtering (Storage.pad(N/2) + lowpassIIR) on the subject01 IK result."""
-    from kinematics.storage import read_mot
+    from kinematics.io.storage import read_mot
 
     path = shared_data / "opensim_gait2392" / "subject01_walk1_ik.mot"
     tab = read_mot(path)
@@ -61,7 +61,7 @@ def test_opensim_method_matches_opensim_storage_filter(shared_data, opensim, tmp
 
 
 def test_derivatives_match_opensim_gcv_spline(opensim, tmp_path):
-    from kinematics.storage import write_sto
+    from kinematics.io.storage import write_sto
 
     t = np.arange(60) / 60.0
     x = np.column_stack([np.sin(2 * np.pi * 1.5 * t) + 0.3 * t ** 2, np.cos(2 * np.pi * 0.7 * t)])
@@ -114,8 +114,8 @@ def test_bad_input_refused():
 def test_choose_cutoff_on_real_ik(shared_data):
     """Residual analysis of subject01's IK coordinates: gait's 4-12 Hz band (Winter: 4-8 Hz for walking
     markers; IK joint angles carry some less noise), mtp (locked, constant) skipped."""
-    from kinematics.filtering import choose_cutoff
-    from kinematics.storage import read_mot
+    from kinematics.gait.filtering import choose_cutoff
+    from kinematics.io.storage import read_mot
 
     tab = read_mot(shared_data / "opensim_gait2392" / "subject01_walk1_ik.mot")
     fc, per = choose_cutoff(tab.values, 60.0)
@@ -128,9 +128,9 @@ def test_filter_markers_run_by_run(shared_data):
     """mocap_pig's movement markers (already smooth, as Nexus exports them) plus 1 mm of white noise per axis:
     the 6 Hz filter removes most of it (median over the 115 markers: 0.42 of the noise's RMS left, including
     the filter's own smoothing of fast segments; every marker below the noise); gaps stay NaN."""
-    from kinematics.c3d import read_c3d
-    from kinematics.filtering import filter_markers, lowpass_runs
-    from kinematics.markers import MarkerTrial
+    from kinematics.io.c3d import read_c3d
+    from kinematics.gait.filtering import filter_markers, lowpass_runs
+    from kinematics.io.markers import MarkerTrial
 
     mk = read_c3d(shared_data / "mocap_pig" / "Movement_trial.c3d")
     noise = np.random.default_rng(7).normal(0, 1e-3, mk.positions.shape)

@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from kinematics.errors import FitError
+from lowerlimb.errors import FitError
 from personalize.fitting import (FittingError, NonFiniteError, NotConvergedError,
                                  TooFewPointsError, fit_cylinder, fit_ellipsoid, fit_plane,
                                  fit_sphere, fit_superquadric, ransac)

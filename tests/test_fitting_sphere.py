@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.errors import FitError
+from lowerlimb.errors import FitError
 from personalize.fitting import (DegenerateError, FittingError, NonFiniteError,
                                  TooFewPointsError, fit_sphere)
 from personalize.fitting.synthetic import add_outliers, random_rotation, sphere_cap, sphere_crb

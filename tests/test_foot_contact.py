@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.errors import FitError
-from kinematics.foot_contact import (
+from lowerlimb.errors import FitError
+from kinematics.gait.foot_contact import (
     FootElement,
     FootParameters,
     fit_foot_parameters,
@@ -107,10 +107,10 @@ def test_mocap_pig_stance_fit(shared_data):
     """The element identified on the right foot's stance on plate 4 of Movement_trial.c3d (stair descent):
     RMS hind-foot angle error under 5 deg (the seed's acceptable variation; measured 3.4 deg) and well under
     a constant angle's (8.1 deg)."""
-    from kinematics.c3d import read_c3d
-    from kinematics.forceplates import assign_feet, read_force_plates
-    from kinematics.pig import plug_in_gait, static_foot_offsets
-    from kinematics.subject import read_vsk
+    from kinematics.io.c3d import read_c3d
+    from kinematics.io.forceplates import assign_feet, read_force_plates
+    from kinematics.gait.pig import plug_in_gait, static_foot_offsets
+    from kinematics.gait.subject import read_vsk
 
     d = shared_data / "mocap_pig"
     static = read_c3d(d / "Static_trial.c3d")

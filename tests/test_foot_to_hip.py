@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kinematics.errors import InputError
-from kinematics.foot_to_hip import calibrate, hip_centre_in_pelvis, knee_ankle_axes, rotate_about, seed_femur_frame
-from kinematics.markers import MarkerTrial
-from kinematics.pig import SegmentPose
-from kinematics.reconstruction import reconstruct, tibia_fluctuation
-from kinematics.subject import SubjectMeasurements
+from lowerlimb.errors import InputError
+from kinematics.gait.foot_to_hip import calibrate, hip_centre_in_pelvis, knee_ankle_axes, rotate_about, seed_femur_frame
+from kinematics.io.markers import MarkerTrial
+from kinematics.gait.pig import SegmentPose
+from kinematics.gait.reconstruction import reconstruct, tibia_fluctuation
+from kinematics.gait.subject import SubjectMeasurements
 from phantoms import make_phantom
 from phantoms.motion import make_trials
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
-from kinematics.forceplates import assign_feet, box_average, read_force_plates
+from lowerlimb.errors import InputError
+from kinematics.io.forceplates import assign_feet, box_average, read_force_plates
 
 MASS_KG = 85.0  # PROCESSING:Bodymass of Movement_trial.c3d
 
@@ -112,7 +112,7 @@ def modified(trial, tmp_path_factory):
 
 
 def test_four_plates_cop_inside_and_matches_nexus(trial, plates):
-    from kinematics.c3d import read_c3d_outputs
+    from kinematics.io.c3d import read_c3d_outputs
 
     assert len(plates) == 4 and plates.rate == 120.0
     assert plates.time.shape == (plates.n_frames,)
@@ -160,7 +160,7 @@ def test_analog_rate_matches_ezc3d(trial):
 
 
 def test_feet_assigned_from_markers(trial, plates):
-    from kinematics.c3d import read_c3d
+    from kinematics.io.c3d import read_c3d
 
     contacts = assign_feet(plates, read_c3d(trial))
     assert [(c.plate, c.foot) for c in contacts] == [(3, "R"), (2, "L"), (1, "R"), (0, "L")]
@@ -173,8 +173,8 @@ def test_feet_assigned_from_markers(trial, plates):
 
 
 def test_two_feet_on_one_plate_flagged(trial, plates):
-    from kinematics.c3d import read_c3d
-    from kinematics.markers import MarkerTrial
+    from kinematics.io.c3d import read_c3d
+    from kinematics.io.markers import MarkerTrial
 
     mk = read_c3d(trial)
     c0 = assign_feet(plates, mk)[0]  # right foot on plate 4
@@ -193,7 +193,7 @@ def test_cop_outside_plate_flagged(trial, modified):
     fp = read_force_plates(modified / "shrunk.c3d")
     p = fp[0]
     assert p.cop_outside.sum() > 10 and any("outside" in n for n in p.notes)
-    from kinematics.c3d import read_c3d
+    from kinematics.io.c3d import read_c3d
 
     c = next(c for c in assign_feet(fp, read_c3d(trial)) if c.plate == 0)
     assert "cop outside plate" in c.flags and not c.usable

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kinematics.errors import FitError
-from kinematics.functional import centre_transformation, pivot_sphere_fit, sara, score, sphere_fit
-from kinematics.segments import rigid_pose
+from lowerlimb.errors import FitError
+from kinematics.algorithms.functional import centre_transformation, pivot_sphere_fit, sara, score, sphere_fit
+from kinematics.algorithms.segments import rigid_pose
 
 HIP_IN_PELVIS = np.array([-0.07, -0.08, -0.09])  # m, right hip centre in the pelvis frame
 PELVIS_MARKERS = np.array([[0.0, -0.12, 0.0], [0.0, 0.12, 0.0], [-0.16, -0.05, 0.03], [-0.16, 0.05, 0.03]])
@@ -184,8 +184,8 @@ def test_no_motion_is_a_fit_error():
 @pytest.mark.parametrize("method", ["score", "ctt", "sphere"])
 def test_joint_centre_from_marker_trial(method):
     """From raw marker trajectories (cluster shapes unknown, gaps in one marker) to the lab hip path."""
-    from kinematics.functional import joint_centre_from_clusters
-    from kinematics.markers import MarkerTrial
+    from kinematics.algorithms.functional import joint_centre_from_clusters
+    from kinematics.io.markers import MarkerTrial
 
     pel, thi = simulate(seed=5, n_per_arc=15)
     pos = np.concatenate([pel, thi], axis=1)

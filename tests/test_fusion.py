@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kinematics.pig import SegmentPose
-from personalize.errors import InputError
+from kinematics.gait.pig import SegmentPose
+from lowerlimb.errors import InputError
 from personalize.fusion import blend_poses, fuse_axis, fuse_gaussian, fuse_linear, fusion_monte_carlo
 
 # Hip centre in the pelvis frame (m): an MRI-like estimate (precise, anisotropic) and a motion-like one.
@@ -267,7 +267,7 @@ def test_blending_fills_gaps_from_the_other_chain():
 
 
 def test_project_estimate_types_are_read():
-    from kinematics.functional import AxisEstimate, CentreEstimate
+    from kinematics.algorithms.functional import AxisEstimate, CentreEstimate
     ce = CentreEstimate(HIP + 0.004, np.zeros(3), C_MOT, np.eye(3), 0.001, 100)
     mri = {"position": list(HIP), "cov": C_MRI.tolist()}
     f = fuse_gaussian([mri, ce], names=("mri", "score"))

@@ -24,8 +24,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kinematics.errors import InputError
-from kinematics.markers import MarkerTrial
+from lowerlimb.errors import InputError
+from kinematics.io.markers import MarkerTrial
 
 FUZZ_CASES = 500
 SETTINGS = settings(max_examples=FUZZ_CASES, deadline=None, derandomize=True, database=None,
@@ -86,8 +86,8 @@ def _trial(n_frames=12, names=("RASI", "LASI", "RKNE", "LKNE", "RANK")) -> Marke
 def seeds(tmp_path_factory, request) -> dict[str, Path]:
     import trimesh
 
-    from kinematics.c3d import write_c3d
-    from kinematics.storage import write_mot, write_trc
+    from kinematics.io.c3d import write_c3d
+    from kinematics.io.storage import write_mot, write_trc
 
     d = tmp_path_factory.mktemp("seeds")
     tr = _trial()
@@ -115,7 +115,7 @@ def check_trial(tr: MarkerTrial, bound: float) -> None:
 
 
 def _read_c3d_case(path: Path, cases: Cases):
-    from kinematics.c3d import MAX_COORDINATE_M, _header_frames, read_c3d
+    from kinematics.io.c3d import MAX_COORDINATE_M, _header_frames, read_c3d
 
     try:
         tr = read_c3d(path)
@@ -196,7 +196,7 @@ def _expected(tok: str) -> float | None:
 
 @pytest.mark.slow
 def test_fuzz_trc(seeds, tmp_path):
-    from kinematics.storage import MAX_COORDINATE_M, read_trc
+    from kinematics.io.storage import MAX_COORDINATE_M, read_trc
 
     text = seeds["trc"].read_text()
     ref = read_trc(seeds["trc"])
@@ -243,7 +243,7 @@ def test_fuzz_trc(seeds, tmp_path):
 
 
 def test_fuzz_mot(seeds, tmp_path):
-    from kinematics.storage import MAX_TABLE_VALUE, read_mot
+    from kinematics.io.storage import MAX_TABLE_VALUE, read_mot
 
     text = seeds["mot"].read_text()
     lines = text.split("\n")
@@ -317,8 +317,8 @@ def test_fuzz_ply(seeds, tmp_path, seed_name):
 
 def test_fuzz_real_seeds(shared_data, tmp_path):
     """The same corruptions of real files: a Vicon C3D (10 frames of mocap_pig's static) and OpenSim's walk TRC."""
-    from kinematics.c3d import read_c3d, write_c3d
-    from kinematics.storage import MAX_COORDINATE_M, read_trc
+    from kinematics.io.c3d import read_c3d, write_c3d
+    from kinematics.io.storage import MAX_COORDINATE_M, read_trc
 
     st_trial = read_c3d(shared_data / "mocap_pig" / "Static_trial.c3d")
     small = MarkerTrial(st_trial.names[:20], st_trial.positions[:10, :20], st_trial.rate, st_trial.time[:10], "s")

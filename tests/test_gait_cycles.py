@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
-from kinematics.gait_cycles import (
+from lowerlimb.errors import InputError
+from kinematics.gait.gait_cycles import (
     N_POINTS,
     GaitCycle,
     GaitEvent,
@@ -18,7 +18,7 @@ from kinematics.gait_cycles import (
     walking_direction,
     write_cycles_csv,
 )
-from kinematics.markers import MarkerTrial
+from kinematics.io.markers import MarkerTrial
 
 
 def synthetic_walk(rate=100.0, period=1.0, speed=1.2, treadmill=False, duration=4.0):
@@ -132,9 +132,9 @@ def test_csv_and_plots(tmp_path):
 def test_mocap_pig_strikes_from_plates_and_kinematics(shared_data):
     """Stair descent over four plates: plate events exact; Zeni's (level-walking) kinematic strikes come
     0.09-0.13 s early (the fore foot lands first on a step), toe offs 0.04 s early; no EVENT group stored."""
-    from kinematics.c3d import read_c3d
-    from kinematics.forceplates import assign_feet, read_force_plates
-    from kinematics.gait_cycles import events_from_plates
+    from kinematics.io.c3d import read_c3d
+    from kinematics.io.forceplates import assign_feet, read_force_plates
+    from kinematics.gait.gait_cycles import events_from_plates
 
     path = shared_data / "mocap_pig" / "Movement_trial.c3d"
     trial = read_c3d(path)
@@ -154,7 +154,7 @@ def test_mocap_pig_strikes_from_plates_and_kinematics(shared_data):
 
 def test_treadmill_walk_zeni_matches_ground_reactions(shared_data):
     """subject01_walk1 (level treadmill walk, 60 Hz): every Zeni event within 0.035 s of the 20 N GRF event."""
-    from kinematics.storage import read_mot, read_trc
+    from kinematics.io.storage import read_mot, read_trc
 
     d = shared_data / "opensim_gait2392"
     trial = read_trc(d / "subject01_walk1.trc")

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 
 GAIT = "opensim_gait2392"
 LEG_JOINTS = ("hip_flexion", "hip_adduction", "hip_rotation", "knee_angle", "ankle_angle", "subtalar_angle", "mtp_angle")
@@ -12,9 +12,9 @@ LEG_JOINTS = ("hip_flexion", "hip_adduction", "hip_rotation", "knee_angle", "ank
 
 @pytest.fixture(scope="module")
 def trial(shared_data):
-    from kinematics.external_loads import read_external_loads
-    from kinematics.opensim_io import load_osim
-    from kinematics.storage import read_mot
+    from kinematics.io.external_loads import read_external_loads
+    from kinematics.io.opensim_io import load_osim
+    from kinematics.io.storage import read_mot
 
     d = shared_data / GAIT
     model = load_osim(d / "subject01_simbody.osim")
@@ -27,7 +27,7 @@ def trial(shared_data):
 
 @pytest.fixture(scope="module")
 def result(trial):
-    from kinematics.inverse_dynamics import trial_inverse_dynamics
+    from kinematics.gait.inverse_dynamics import trial_inverse_dynamics
 
     model, tab, loads = trial
     return trial_inverse_dynamics(model, tab.time, tab.select(model.coordinate_names), loads, cutoff=6.0,
@@ -54,7 +54,7 @@ def test_loads_read_and_pelvis_translations(trial):
 
 def test_matches_opensim_inverse_dynamics_tool(trial, result, opensim, shared_data, tmp_path):
     """OpenSim's InverseDynamicsTool on the same files in the same test: every column within 0.01 % of its peak."""
-    from kinematics.storage import read_sto
+    from kinematics.io.storage import read_sto
 
     d = shared_data / GAIT
     tool = opensim.InverseDynamicsTool()
@@ -88,7 +88,7 @@ def test_matches_stored_opensim_result(result, shared_data):
     OpenSim 4's tool to 1e-5 (test above).  Its frames before 0.5 s are OpenSim's padding (the IK
     result starts at 0.5 s); the engine reports measured frames only.
     """
-    from kinematics.storage import read_sto
+    from kinematics.io.storage import read_sto
 
     ref = read_sto(shared_data / GAIT / "subject01_walk1_InverseDynamics_opensim.sto")
     rel = _rel_rms(result, ref)
@@ -101,8 +101,8 @@ def test_matches_stored_opensim_result(result, shared_data):
 
 
 def test_powers_per_kg_and_sto(result, tmp_path):
-    from kinematics.inverse_dynamics import write_inverse_dynamics, write_joint_powers
-    from kinematics.storage import read_sto
+    from kinematics.gait.inverse_dynamics import write_inverse_dynamics, write_joint_powers
+    from kinematics.io.storage import read_sto
 
     assert np.allclose(result.power, result.tau * result.qd)
     assert result.mass == pytest.approx(72.6, abs=0.5)
@@ -120,8 +120,8 @@ def test_powers_per_kg_and_sto(result, tmp_path):
 
 
 def test_without_loads_note_and_bad_body(trial):
-    from kinematics.external_loads import ExternalLoad
-    from kinematics.inverse_dynamics import trial_inverse_dynamics
+    from kinematics.io.external_loads import ExternalLoad
+    from kinematics.gait.inverse_dynamics import trial_inverse_dynamics
 
     model, tab, loads = trial
     q = tab.select(model.coordinate_names)
@@ -136,7 +136,7 @@ def test_without_loads_note_and_bad_body(trial):
 
 
 def test_external_loads_roundtrip_and_opensim_reads_them(trial, tmp_path, opensim):
-    from kinematics.external_loads import read_external_loads, write_external_loads
+    from kinematics.io.external_loads import read_external_loads, write_external_loads
 
     _, _, loads = trial
     mot, xml = write_external_loads(tmp_path, "grf", loads)
@@ -162,7 +162,7 @@ import sys
 import numpy as np
 import ezc3d
 sys.path.insert(0, sys.argv[1])
-from kinematics.storage import read_mot, read_trc
+from kinematics.io.storage import read_mot, read_trc
 
 grf, trc, pig, out = sys.argv[2:6]
 R = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])  # lab (Z up) -> OpenSim ground (Y up)
@@ -239,8 +239,8 @@ def cli_loads(shared_data, tmp_path_factory):
 def test_cli_loads_writes_opensim_files(cli_loads, trial):
     import json
 
-    from kinematics.inverse_dynamics import trial_inverse_dynamics
-    from kinematics.storage import read_sto
+    from kinematics.gait.inverse_dynamics import trial_inverse_dynamics
+    from kinematics.io.storage import read_sto
 
     model, tab, loads = trial
     ref = trial_inverse_dynamics(model, tab.time, tab.select(model.coordinate_names), loads, start=0.5, end=1.6)
@@ -261,8 +261,8 @@ def test_cli_c3d_split_belt_matches_loads(cli_loads, c3ds, shared_data, tmp_path
     box-averaged to the 60 Hz frames, the .mot is sampled at 600 Hz)."""
     import json
 
-    from kinematics.external_loads import read_external_loads
-    from kinematics.storage import read_sto
+    from kinematics.io.external_loads import read_external_loads
+    from kinematics.io.storage import read_sto
     from personalize.cli import main
 
     out = tmp_path / "c3d"
@@ -337,7 +337,7 @@ def test_cli_needs_one_load_source(shared_data, tmp_path, capsys):
 
 def test_ragged_ground_reaction_file_refused(shared_data, tmp_path):
     """The fast numeric reader of the .mot falls back to the checked reader, which names the bad line."""
-    from kinematics.external_loads import read_external_loads
+    from kinematics.io.external_loads import read_external_loads
 
     d = shared_data / GAIT
     lines = (d / "subject01_walk1_grf.mot").read_text().splitlines()
@@ -349,7 +349,7 @@ def test_ragged_ground_reaction_file_refused(shared_data, tmp_path):
 
 
 def test_excluded_intervals_are_nan_and_noted(trial):
-    from kinematics.inverse_dynamics import lab_to_ground, trial_inverse_dynamics
+    from kinematics.gait.inverse_dynamics import lab_to_ground, trial_inverse_dynamics
 
     model, tab, loads = trial
     r = trial_inverse_dynamics(model, tab.time, tab.select(model.coordinate_names), loads, start=0.6, end=1.0,

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from personalize.errors import InputError
+from lowerlimb.errors import InputError
 from personalize.io import (detect_mesh_unit, read_label_map, read_label_volume, read_mesh_folder,
                             read_mesh_folder_detailed)
 from personalize.surfaces import load_bones

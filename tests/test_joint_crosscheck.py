@@ -104,8 +104,8 @@ def _load(folder):
     """The set's bones (metres); until every mesh repair lands, a mesh the reader refuses is read as it is."""
     import trimesh
 
-    from kinematics.errors import InputError
-    from personalize.bones import canonical_bone_name
+    from lowerlimb.errors import InputError
+    from lowerlimb.bones import canonical_bone_name
     from personalize.surfaces import load_bones
 
     try:

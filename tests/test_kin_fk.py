@@ -1,14 +1,14 @@
-"""Forward kinematics and Jacobians (kinematics.fk)."""
+"""Forward kinematics and Jacobians (kinematics.algorithms.fk)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from kin_helpers import leg_model
-from kinematics.fk import (body_pose, com_jacobian, com_position, forward_kinematics, frame_jacobian, frame_pose,
+from kinematics.algorithms.fk import (body_pose, com_jacobian, com_position, forward_kinematics, frame_jacobian, frame_pose,
                            marker_jacobian, marker_positions, point_jacobian)
-from kinematics.joints import Transform, revolute
-from kinematics.model import Body, Coordinate, Frame, Marker, Model
+from kinematics.multibody.joints import Transform, revolute
+from kinematics.multibody.model import Body, Coordinate, Frame, Marker, Model
 
 GAIT = "opensim_gait2392/subject01_simbody_adjusted.osim"
 
@@ -95,7 +95,7 @@ def test_frames_and_state(model):
 
 def test_fk_matches_opensim_on_gait2392(shared_data, opensim):
     """200 random poses within the coordinate limits: every marker within 1e-8 m of OpenSim's."""
-    from kinematics.opensim_io import load_osim
+    from kinematics.io.opensim_io import load_osim
 
     path = shared_data / GAIT
     m = load_osim(path)

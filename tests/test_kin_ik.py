@@ -1,18 +1,18 @@
-"""Marker inverse kinematics (kinematics.ik) with couplings, limits, gaps; agreement with OpenSim."""
+"""Marker inverse kinematics (kinematics.algorithms.ik) with couplings, limits, gaps; agreement with OpenSim."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from kin_helpers import leg_model
-from kinematics.coupling import CoordinateCoupler, LinearCoupling, LinearInequalities
-from kinematics.errors import InputError
-from kinematics.fk import marker_positions
-from kinematics.functions import SimmSpline
-from kinematics.ik import (CoordinateTask, com_task, coordinate_map, marker_task, orientation_task, read_ik_setup,
+from kinematics.multibody.coupling import CoordinateCoupler, LinearCoupling, LinearInequalities
+from lowerlimb.errors import InputError
+from kinematics.algorithms.fk import marker_positions
+from kinematics.multibody.functions import SimmSpline
+from kinematics.algorithms.ik import (CoordinateTask, com_task, coordinate_map, marker_task, orientation_task, read_ik_setup,
                            solve_ik, solve_pose)
-from kinematics.markers import MarkerTrial
-from kinematics.model import Coordinate
+from kinematics.io.markers import MarkerTrial
+from kinematics.multibody.model import Coordinate
 
 GAIT = "opensim_gait2392"
 
@@ -102,7 +102,7 @@ def test_orientation_and_com_task_jacobians(model):
                    for i in range(model.n_q)], -1)
     np.testing.assert_allclose(J, fd, atol=1e-8)
     # e is the rotation vector taking the target to the current orientation.
-    from kinematics.fk import body_pose
+    from kinematics.algorithms.fk import body_pose
 
     R = body_pose(model, q, "foot")[0]
     np.testing.assert_allclose(Rotation.from_rotvec(e / 2.0).as_matrix() @ target, R, atol=1e-12)
@@ -232,8 +232,8 @@ def test_read_ik_setup(shared_data):
 
 def test_ik_agrees_with_opensim_on_gait2392(shared_data, opensim):
     """Per-frame RMS <= OpenSim's + 0.1 mm; coordinates within 0.5 deg / 0.5 mm of OpenSim's solution."""
-    from kinematics.opensim_io import load_osim, opensim_inverse_kinematics
-    from kinematics.storage import read_trc
+    from kinematics.io.opensim_io import load_osim, opensim_inverse_kinematics
+    from kinematics.io.storage import read_trc
 
     d = shared_data / GAIT
     su = read_ik_setup(d / "subject01_Setup_IK.xml")
@@ -255,7 +255,7 @@ def test_ik_agrees_with_opensim_on_gait2392(shared_data, opensim):
 @pytest.mark.parametrize("with_coupler", [False, True])
 def test_ik_residual_jacobian_in_z_matches_finite_differences(model, with_coupler):
     """The reduced Jacobian dr/dz used by the solver (constant-dq/dz fast path and coupler chain rule)."""
-    from kinematics.ik import _Problem
+    from kinematics.algorithms.ik import _Problem
 
     m = model.with_couplings(LinearCoupling.correlative(model.coordinate_names, "hip_rotation", {"hip_flexion": 0.3}, 0.1))
     if with_coupler:

@@ -1,4 +1,4 @@
-"""Model description, coordinate functions and joints (kinematics.model / functions / joints / coupling)."""
+"""Model description, coordinate functions and joints (kinematics.multibody.model / functions / joints / coupling)."""
 from __future__ import annotations
 
 import dataclasses
@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from kin_helpers import KNEE_X, leg_model
-from kinematics.coupling import LinearCoupling, initial_projector, null_space_parametrization, restoring_variation
-from kinematics.errors import InputError
-from kinematics.functions import Constant, Linear, Multiplier, MultivariateLinear, NaturalCubicSpline, SimmSpline
-from kinematics.joints import (ExpMapSpherical, SwingJoint, Transform, euler_to_matrix, exp_so3,
+from kinematics.multibody.coupling import LinearCoupling, initial_projector, null_space_parametrization, restoring_variation
+from lowerlimb.errors import InputError
+from kinematics.multibody.functions import Constant, Linear, Multiplier, MultivariateLinear, NaturalCubicSpline, SimmSpline
+from kinematics.multibody.joints import (ExpMapSpherical, SwingJoint, Transform, euler_to_matrix, exp_so3,
                                left_jacobian_inverse_so3, left_jacobian_so3, revolute, rotation_about)
-from kinematics.model import Body, Coordinate, Marker, Model
+from kinematics.multibody.model import Body, Coordinate, Marker, Model
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +40,7 @@ def test_model_sorts_joints_given_in_any_order(model):
     shuffled = Model(model.bodies[::-1], model.joints[::-1], model.coordinates, model.markers)
     assert shuffled.body_names[0] == "ground"
     q = model.random_q(3, np.random.default_rng(0))
-    from kinematics.fk import marker_positions
+    from kinematics.algorithms.fk import marker_positions
 
     np.testing.assert_allclose(marker_positions(shuffled, q), marker_positions(model, q), atol=1e-14)
 
@@ -118,7 +118,7 @@ def test_euler_and_rotation_helpers():
     from scipy.spatial.transform import Rotation
 
     np.testing.assert_allclose(R, Rotation.from_euler("XYZ", a).as_matrix(), atol=1e-14)
-    from kinematics.joints import matrix_to_euler_xyz
+    from kinematics.multibody.joints import matrix_to_euler_xyz
 
     np.testing.assert_allclose(matrix_to_euler_xyz(R), a, atol=1e-14)
     lock = euler_to_matrix(np.array([0.4, np.pi / 2, 0.0]), "XYZ")
@@ -225,7 +225,7 @@ def test_linear_coupling_without_drops_exactly_the_rows_touching_the_names():
 
 def test_custom_joint_with_constant_and_multivariate_axes():
     """Constant rotations, a two-coordinate (correlative) axis and a spline translation: S and dS/dt by differences."""
-    from kinematics.joints import CustomJoint, TransformAxis
+    from kinematics.multibody.joints import CustomJoint, TransformAxis
 
     j = CustomJoint(
         "j", "a", "b", ("u", "v"),

@@ -1,15 +1,15 @@
-"""OpenSim import/export (kinematics.opensim_io)."""
+"""OpenSim import/export (kinematics.io.opensim_io)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from kin_helpers import leg_model
-from kinematics.coupling import LinearCoupling
-from kinematics.errors import InputError
-from kinematics.fk import marker_positions
-from kinematics.functions import Multiplier, SimmSpline
-from kinematics.opensim_io import load_osim, save_osim
+from kinematics.multibody.coupling import LinearCoupling
+from lowerlimb.errors import InputError
+from kinematics.algorithms.fk import marker_positions
+from kinematics.multibody.functions import Multiplier, SimmSpline
+from kinematics.io.opensim_io import load_osim, save_osim
 
 GAIT = "opensim_gait2392/subject01_simbody_adjusted.osim"
 
@@ -132,8 +132,8 @@ def test_coupler_constraint_scale_factor_matches_opensim(tmp_path, opensim):
 
 def test_multivariate_linear_matches_opensim_evaluation_both_ways(opensim):
     """Order-1 MultivariatePolynomialFunction coefficients map to the right inputs (OpenSim reverses them)."""
-    from kinematics.functions import MultivariateLinear
-    from kinematics.opensim_io import function_from_opensim, function_to_opensim
+    from kinematics.multibody.functions import MultivariateLinear
+    from kinematics.io.opensim_io import function_from_opensim, function_to_opensim
 
     f = MultivariateLinear(np.array([0.011, -0.023, 0.037]), 0.004)
     om = function_to_opensim(opensim, f)

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
-from kinematics.markers import MarkerTrial
-from kinematics.storage import (Table, guess_rotational, read_mot, read_sto, read_trc, write_mot, write_sto,
+from lowerlimb.errors import InputError
+from kinematics.io.markers import MarkerTrial
+from kinematics.io.storage import (Table, guess_rotational, read_mot, read_sto, read_trc, write_mot, write_sto,
                                 write_trc)
 
 

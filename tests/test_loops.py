@@ -1,16 +1,16 @@
-"""Newton loop closure (kinematics.loops) on a planar four-bar linkage with closed-form angles."""
+"""Newton loop closure (kinematics.algorithms.loops) on a planar four-bar linkage with closed-form angles."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from kinematics.dynamics import generalized_forces
-from kinematics.errors import FitError, InputError
-from kinematics.fk import point_jacobian
-from kinematics.joints import Transform, revolute
-from kinematics.loops import CoincidentPoints, DistanceConstraint, close_loop, loop_residuals
-from kinematics.model import Body, Coordinate, Model
-from kinematics.transmission import AppliedLoad
+from kinematics.mechanisms.dynamics import generalized_forces
+from lowerlimb.errors import FitError, InputError
+from kinematics.algorithms.fk import point_jacobian
+from kinematics.multibody.joints import Transform, revolute
+from kinematics.algorithms.loops import CoincidentPoints, DistanceConstraint, close_loop, loop_residuals
+from kinematics.multibody.model import Body, Coordinate, Model
+from kinematics.mechanisms.transmission import AppliedLoad
 
 # Crank-rocker (Grashof: a + b <= c + d): ground pivots A = 0 and D = (d, 0); crank AB, coupler BC, rocker DC.
 A_, B_, C_, D_ = 0.1, 0.35, 0.2, 0.3
@@ -116,7 +116,7 @@ def test_unclosable_loop_and_bad_input_are_reported():
 def test_closed_loop_accelerations_and_inverse_dynamics(solved):
     """Solver acceleration transmission vs differentiating the closed form, and the crank torque of the closed
     loop (E^T tau) against the power balance d(kinetic energy)/dt = theta2_dot * torque (no gravity)."""
-    from kinematics.dynamics import inverse_dynamics, mass_matrix
+    from kinematics.mechanisms.dynamics import inverse_dynamics, mass_matrix
 
     m, theta2, _, _, sol = solved
     w, al = 1.5, -4.0

@@ -8,8 +8,8 @@ import pytest
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from kinematics.errors import FitError, InputError
-from kinematics.mechanisms import (BowCompass, body_poses, fit_bow_compass, fit_gear_pair, fit_helical,
+from lowerlimb.errors import FitError, InputError
+from kinematics.mechanisms.recovery import (BowCompass, body_poses, fit_bow_compass, fit_gear_pair, fit_helical,
                                    rotation_about_axis)
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.fk import forward_kinematics, marker_positions
-from kinematics.ik import solve_ik
-from kinematics.markers import MarkerTrial
+from kinematics.algorithms.fk import forward_kinematics, marker_positions
+from kinematics.algorithms.ik import solve_ik
+from kinematics.io.markers import MarkerTrial
 from personalize.model_builder import (DE_LEVA, FOOT_SPLIT, SideParameters, SubjectParameters, build_personal_model,
                                        default_knee_law)
 
@@ -160,7 +160,7 @@ def test_default_law_is_zero_standing():
 def test_osim_export_with_meshes_loads(phantom, opensim, tmp_path):
     import trimesh
 
-    from kinematics.opensim_io import load_osim
+    from kinematics.io.opensim_io import load_osim
     from personalize.model_builder import save_model_osim, write_meshes
 
     sk, trials = phantom

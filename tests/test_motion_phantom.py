@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from kinematics.c3d import read_c3d
-from kinematics.correlative import CorrelativeLaw
-from kinematics.functional import joint_centre_from_clusters
-from kinematics.storage import read_mot, read_trc
-from kinematics.subject import read_subject
+from kinematics.io.c3d import read_c3d
+from kinematics.mechanisms.correlative import CorrelativeLaw
+from kinematics.algorithms.functional import joint_centre_from_clusters
+from kinematics.io.storage import read_mot, read_trc
+from kinematics.gait.subject import read_subject
 from phantoms import make_phantom
 from phantoms.motion import ANGLE_COLUMNS, make_trials, write_trials
 

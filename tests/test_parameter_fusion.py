@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from personalize.errors import InputError
+from lowerlimb.errors import InputError
 from personalize.parameter_fusion import (MOTION_KNEE_TRANSLATION_SD, MRI_POSTURE_SD, fuse_knee_standing_translation,
                                           fuse_segment_lengths, segment_length)
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
-from personalize.bones import BONE_NAMES, mirror_name
+from lowerlimb.errors import InputError
+from lowerlimb.bones import BONE_NAMES, mirror_name
 from phantoms import PhantomParams, make_phantom
 
 SURFACE_LANDMARKS = {

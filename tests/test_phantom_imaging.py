@@ -9,8 +9,8 @@ import pytest
 import trimesh
 from scipy import ndimage
 
-from kinematics.errors import InputError
-from personalize.bones import DEFAULT_LABEL_MAP
+from lowerlimb.errors import InputError
+from lowerlimb.bones import DEFAULT_LABEL_MAP
 from personalize.cli import main
 from phantoms import make_phantom
 from phantoms.imaging import label_volume, write_phantom
@@ -185,9 +185,9 @@ def test_cli_child_phantom_with_open_growth_plates(tmp_path, capsys):
 
 def test_cli_phantom_writes_a_subject_with_motion(tmp_path):
     """The default phantom folder is a subject: trials, truth coordinates and the knee laws in truth.json."""
-    from kinematics.c3d import read_c3d
-    from kinematics.correlative import CorrelativeLaw
-    from kinematics.storage import read_mot
+    from kinematics.io.c3d import read_c3d
+    from kinematics.mechanisms.correlative import CorrelativeLaw
+    from kinematics.io.storage import read_mot
 
     out = tmp_path / "subject"
     assert main(["phantom", "--out", str(out), "--seed", "4", "--bones", "patella_r"]) == 0

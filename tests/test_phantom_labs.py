@@ -25,8 +25,8 @@ def reference(tmp_path_factory):
 
 @pytest.mark.parametrize("up,walk", [("y-up", "-z"), ("z-up", "-y")])
 def test_trials_written_in_the_lab_axes(reference, tmp_path, up, walk):
-    from kinematics.c3d import read_c3d
-    from kinematics.storage import read_trc
+    from kinematics.io.c3d import read_c3d
+    from kinematics.io.storage import read_trc
     from phantoms.lab import make_lab
     from phantoms.motion import write_trials
 

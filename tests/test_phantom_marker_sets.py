@@ -1,12 +1,12 @@
-"""Marker sets as data (kinematics.marker_sets): presets, markers.json round trip, bad files."""
+"""Marker sets as data (kinematics.io.marker_sets): presets, markers.json round trip, bad files."""
 from __future__ import annotations
 
 import json
 
 import pytest
 
-from kinematics.errors import InputError
-from kinematics.marker_sets import PRESETS, preset, read_marker_set, resolve_marker_set, write_marker_set
+from lowerlimb.errors import InputError
+from kinematics.io.marker_sets import PRESETS, preset, read_marker_set, resolve_marker_set, write_marker_set
 
 
 def test_presets_have_both_sides_and_landmark_names():

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from kinematics.marker_sets import preset, read_marker_set
+from kinematics.io.marker_sets import preset, read_marker_set
 
 
 @pytest.fixture(scope="module")
@@ -29,15 +29,15 @@ def _write(tmp_path, anat, name, **kw):
 
 
 def _read_trial(path):
-    from kinematics.c3d import read_c3d
-    from kinematics.storage import read_trc
+    from kinematics.io.c3d import read_c3d
+    from kinematics.io.storage import read_trc
 
     return read_c3d(path) if path.suffix == ".c3d" else read_trc(path)
 
 
 def test_mirrored_side_is_the_mirror_image(icl):
     """Same coordinates on both sides give the mirror-image leg (pelvis fixed); the scan pose puts every bone on its mesh."""
-    from kinematics.fk import forward_kinematics
+    from kinematics.algorithms.fk import forward_kinematics
 
     M, c = icl.symmetry
     assert np.linalg.det(M) == pytest.approx(-1.0)
@@ -66,8 +66,8 @@ def test_mirrored_side_is_the_mirror_image(icl):
 
 def test_opensim_ik_reproduces_truth_icl_ior_yup(icl, tmp_path, opensim):
     """Noise-free, artefact-free ior markers of a Y-up lab through OpenSim's own IK on truth_model.osim: < 0.5 mm."""
-    from kinematics.opensim_io import opensim_inverse_kinematics
-    from kinematics.storage import read_mot
+    from kinematics.io.opensim_io import opensim_inverse_kinematics
+    from kinematics.io.storage import read_mot
 
     out, truth = _write(tmp_path, icl, "icl", marker_set="ior", lab="y-up", static_name="Static", gait_trials=1)
     assert (out / "Static.c3d").is_file() and not (out / "functional_hip.c3d").exists()
@@ -124,9 +124,9 @@ def test_label_volume_1mm_surfaces_within_quarter_mm(icl, icl_labels):
 
 def _check_written(out, truth, anat, ms_name):
     """Markers in the static trial = the truth model's markers at the true static pose; markers.json = placed set."""
-    from kinematics.fk import forward_kinematics, point_positions
-    from kinematics.opensim_io import load_osim
-    from kinematics.storage import read_mot
+    from kinematics.algorithms.fk import forward_kinematics, point_positions
+    from kinematics.io.opensim_io import load_osim
+    from kinematics.io.storage import read_mot
 
     model = load_osim(out / "truth_model.osim")
     ms = read_marker_set(out / "markers.json")
@@ -232,7 +232,7 @@ def test_no_fibula_mesh_keeps_fibula_landmarks_on_the_tibia(icl, tmp_path):
 
 def test_lhdl_ct_tibia_with_fibula_component(shared_data, tmp_path, opensim):
     """LHDL-CT (no fibula mesh: the fibula is the tibia mesh's second component; a toes body): OpenSim IK < 0.5 mm."""
-    from kinematics.opensim_io import opensim_inverse_kinematics
+    from kinematics.io.opensim_io import opensim_inverse_kinematics
     from phantoms.real_anatomy import load_real_anatomy
 
     anat = load_real_anatomy(shared_data / "bones" / "LHDL_CT", shared_data / "reference_models" / "manual_LHDL_CT.osim")
@@ -243,7 +243,7 @@ def test_lhdl_ct_tibia_with_fibula_component(shared_data, tmp_path, opensim):
 
 
 def test_bad_inputs_are_one_line_errors(shared_data, tmp_path):
-    from kinematics.errors import InputError
+    from lowerlimb.errors import InputError
     from phantoms.lab import make_lab
     from phantoms.real_anatomy import load_real_anatomy
 
@@ -309,9 +309,9 @@ def test_gait_keeps_the_stance_foot_on_the_floor(icl):
 
 
 def test_force_plates_carry_the_momentum_ground_reaction(icl, tmp_path):
-    """Force platforms under the stance phases read back (kinematics.forceplates) as the truth's reaction."""
-    from kinematics.forceplates import read_force_plates
-    from kinematics.storage import read_sto
+    """Force platforms under the stance phases read back (kinematics.io.forceplates) as the truth's reaction."""
+    from kinematics.io.forceplates import read_force_plates
+    from kinematics.io.storage import read_sto
 
     out, truth = _write(tmp_path, icl, "fp", marker_set="pig", lab="z-up", walk="-y", gait_trials=1,
                         force_plates=True)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinematics.markers import MarkerTrial
+from kinematics.io.markers import MarkerTrial
 
 
 def test_realistic_set_covers_every_level(shared_data):
@@ -24,7 +24,7 @@ def test_realistic_set_covers_every_level(shared_data):
 
 
 def test_coverage_metric_counts_truth_inside_the_95_ellipsoid(tmp_path):
-    from kinematics.storage import write_trc
+    from kinematics.io.storage import write_trc
     from personalize.validate import coverage_metrics
 
     (tmp_path / "truth").mkdir()

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kinematics.errors import InputError
-from kinematics.markers import MarkerTrial
-from kinematics.pig import (SegmentPose, chord_joint_centre, davis_hip_offset, joint_angles, plug_in_gait,
+from lowerlimb.errors import InputError
+from kinematics.io.markers import MarkerTrial
+from kinematics.gait.pig import (SegmentPose, chord_joint_centre, davis_hip_offset, joint_angles, plug_in_gait,
                             static_foot_offsets)
-from kinematics.subject import SubjectMeasurements, read_vsk, validate_static
+from kinematics.gait.subject import SubjectMeasurements, read_vsk, validate_static
 
 SUBJECT = SubjectMeasurements(left_leg_length=0.90, right_leg_length=0.88, left_knee_width=0.11,
                               right_knee_width=0.105, left_ankle_width=0.075, right_ankle_width=0.07,
@@ -135,7 +135,7 @@ def test_leg_length_mismatch_is_refused(synthetic):
 
 @pytest.fixture(scope="module")
 def nexus(shared_data):
-    from kinematics.c3d import read_c3d, read_c3d_outputs
+    from kinematics.io.c3d import read_c3d, read_c3d_outputs
 
     d = shared_data / "mocap_pig"
     return {"vsk": read_vsk(d / "Test.vsk"),

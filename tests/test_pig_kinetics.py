@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kinematics.markers import MarkerTrial
-from kinematics.pig import PiGResult, SegmentPose
-from kinematics.pig_kinetics import (
+from kinematics.io.markers import MarkerTrial
+from kinematics.gait.pig import PiGResult, SegmentPose
+from kinematics.gait.pig_kinetics import (
     GRAVITY,
     PIG_SEGMENTS,
     GroundReaction,
@@ -101,11 +101,11 @@ def test_unloaded_standing_foot_gives_nan_not_a_swing_moment():
 
 @pytest.fixture(scope="module")
 def nexus(shared_data):
-    from kinematics.c3d import read_c3d, read_c3d_outputs
-    from kinematics.forceplates import assign_feet, read_force_plates
-    from kinematics.pig import plug_in_gait, static_foot_offsets
-    from kinematics.pig_kinetics import ground_reactions
-    from kinematics.subject import read_vsk
+    from kinematics.io.c3d import read_c3d, read_c3d_outputs
+    from kinematics.io.forceplates import assign_feet, read_force_plates
+    from kinematics.gait.pig import plug_in_gait, static_foot_offsets
+    from kinematics.gait.pig_kinetics import ground_reactions
+    from kinematics.gait.subject import read_vsk
 
     d = shared_data / "mocap_pig"
     sub = static_foot_offsets(read_c3d(d / "Static_trial.c3d"), read_vsk(d / "Test.vsk"))
@@ -147,8 +147,8 @@ def test_moments_and_powers_match_nexus_over_stance(nexus, side):
 def test_bad_inputs_are_refused():
     from types import SimpleNamespace
 
-    from kinematics.errors import InputError
-    from kinematics.pig_kinetics import ground_reactions
+    from lowerlimb.errors import InputError
+    from kinematics.gait.pig_kinetics import ground_reactions
 
     trial, pig, _ = _still_leg()
     F = trial.n_frames

@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 from personalize.cli import main
 from personalize.pipeline import find_inputs, run_subject, write_phantom_subject
 
@@ -19,7 +19,7 @@ SEED = 5
 def subject(tmp_path_factory):
     """A phantom subject folder with short trials (2 mm labels) and its pipeline output.
 
-    Seed 5: pelvis soft tissue near the population median (ASIS 6.9 mm, PSIS 19.5 mm; `kinematics.soft_tissue`).
+    Seed 5: pelvis soft tissue near the population median (ASIS 6.9 mm, PSIS 19.5 mm; `kinematics.gait.soft_tissue`).
     The tail of that distribution (seed 2 draws a 54 mm ASIS, +3 sd, and its MRI hip is 3 cm off, unobservable
     from the markers) is the validation runs' business, not this test's.
     """
@@ -49,7 +49,7 @@ def test_outputs_written(subject):
 
 def test_lengths_intercepts_and_chain_blend(subject):
     """Segment lengths and the knee law's intercept are fused and reported; the chains are blended per trial."""
-    from kinematics.storage import read_mot
+    from kinematics.io.storage import read_mot
 
     subj, out, summary = subject
     est = summary["estimates"]
@@ -141,7 +141,7 @@ def test_ik_every_trial(subject):
     # soft-tissue artefact of 5-20 mm on the thigh and shank: a few mm of residual, static nearly exact
     assert summary["ik"]["static"]["rms_mean_mm"] < 2.0
     assert 1.0 < summary["ik_rms_mm"] < 9.0
-    from kinematics.storage import read_mot
+    from kinematics.io.storage import read_mot
 
     mot = read_mot(out / "kinematics" / "gait_01.mot")
     k = mot.column("knee_flexion_r")
@@ -185,8 +185,8 @@ def test_missing_trials(subject, tmp_path):
 
 
 def test_trial_of_another_subject(subject, tmp_path, capsys):
-    from kinematics.c3d import read_c3d, write_c3d
-    from kinematics.markers import MarkerTrial
+    from kinematics.io.c3d import read_c3d, write_c3d
+    from kinematics.io.markers import MarkerTrial
 
     subj, _, _ = subject
     bad = _copy(subj, tmp_path / "s")
@@ -200,7 +200,7 @@ def test_trial_of_another_subject(subject, tmp_path, capsys):
 
 
 def test_labels_and_markers_of_different_sides(tmp_path, capsys):
-    from kinematics.c3d import read_c3d, write_c3d
+    from kinematics.io.c3d import read_c3d, write_c3d
 
     subj = write_phantom_subject(tmp_path / "s", seed=4, voxel_mm=3.0,
                                  bones=["pelvis", "femur_r", "tibia_r", "fibula_r", "patella_r", "talus_r", "calcn_r", "toes_r"])
@@ -214,7 +214,7 @@ def test_labels_and_markers_of_different_sides(tmp_path, capsys):
 
 def test_plug_in_gait_marker_set_only(subject, tmp_path):
     """Standard Plug-in-Gait markers (no medial, cluster or device markers): fall-backs, still a valid model."""
-    from kinematics.c3d import read_c3d, write_c3d
+    from kinematics.io.c3d import read_c3d, write_c3d
 
     subj, _, full = subject
     pig = tmp_path / "s"
@@ -238,8 +238,8 @@ def test_knee_law_fitted_without_soft_tissue_artefact(subject):
     """Bone-fixed (STA-free) markers: the fitted law's flexion slopes match the phantom's true law."""
     from types import SimpleNamespace
 
-    from kinematics.correlative import CorrelativeLaw
-    from kinematics.opensim_io import load_osim
+    from kinematics.mechanisms.correlative import CorrelativeLaw
+    from kinematics.io.opensim_io import load_osim
     from personalize.model_builder import default_knee_law
     from personalize.pipeline import fit_knee_laws
     from phantoms import make_phantom
@@ -260,8 +260,8 @@ def test_knee_law_fitted_without_soft_tissue_artefact(subject):
 
 def test_markers_of_the_mirrored_side(subject, tmp_path, capsys):
     """R/L marker labels swapped relative to the MRI: refused by the registration's side check."""
-    from kinematics.c3d import read_c3d, write_c3d
-    from kinematics.markers import MarkerTrial
+    from kinematics.io.c3d import read_c3d, write_c3d
+    from kinematics.io.markers import MarkerTrial
 
     subj, _, _ = subject
     bad = _copy(subj, tmp_path / "s")
@@ -299,10 +299,10 @@ def test_demo_runs_the_pipeline(demo):
 
 def test_demo_model_in_opensim(demo, opensim, tmp_path):
     """model.osim of the demo loads in OpenSim; OpenSim's IK on the gait trial matches the engine's within 0.5 mm."""
-    from kinematics.c3d import read_c3d
-    from kinematics.ik import solve_ik
-    from kinematics.opensim_io import load_osim, opensim_inverse_kinematics
-    from kinematics.storage import write_trc
+    from kinematics.io.c3d import read_c3d
+    from kinematics.algorithms.ik import solve_ik
+    from kinematics.io.opensim_io import load_osim, opensim_inverse_kinematics
+    from kinematics.io.storage import write_trc
 
     out, summary = demo
     trial = read_c3d(out / "subject" / "gait_01.c3d")

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
-from kinematics.prioritized import (ConstraintSet, LinearConstraint, PrioritizedIK, RecruitingError, Task,
+from lowerlimb.errors import InputError
+from kinematics.algorithms.prioritized import (ConstraintSet, LinearConstraint, PrioritizedIK, RecruitingError, Task,
                                     check_recruiting)
 
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kinematics.markers import MarkerTrial
-from personalize.errors import InputError
+from kinematics.io.markers import MarkerTrial
+from lowerlimb.errors import InputError
 from personalize.registration import (MARKER_RADIUS, SKIN_THICKNESS, register_landmarks, register_segments, skin_prior,
                                       static_marker_positions)
 
@@ -146,7 +146,7 @@ def _skeleton():
 
 
 def _mirror(bones_r):
-    from personalize.bones import mirror_name
+    from lowerlimb.bones import mirror_name
     out = {}
     for b, lms in bones_r.items():
         if b == "pelvis":
@@ -251,7 +251,7 @@ def _rename(trial, mapping, drop=()):
 
 
 def test_swapped_sides_are_refused(world):
-    from personalize.bones import mirror_name
+    from lowerlimb.bones import mirror_name
     lm, trial, *_ = world
     swapped = _rename(trial, {n: mirror_name(n) for n in trial.names})
     with pytest.raises(InputError, match="mirrored"):

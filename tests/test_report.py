@@ -8,7 +8,7 @@ from html.parser import HTMLParser
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 from personalize.report import (Figure, Section, Table, find_chromium, headless_screenshot, new_figure, png_bytes,
                                 render_report)
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kinematics.errors import InputError
-from kinematics.segments import cluster_reference, rigid_pose
+from lowerlimb.errors import InputError
+from kinematics.algorithms.segments import cluster_reference, rigid_pose
 
 REF = np.array([[0.05, 0.0, 0.0], [0.0, 0.06, 0.01], [-0.04, -0.02, 0.03], [0.01, 0.02, -0.05]])
 

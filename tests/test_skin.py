@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 from personalize.io import LabelVolume, read_label_map, read_label_volume, read_tissue_label
 from personalize.skin import MAX_THICKNESS, POSTURE_SD, measure_skin_thickness
 from phantoms import make_phantom

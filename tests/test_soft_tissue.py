@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinematics.soft_tissue import DEFAULT_TISSUE, SOFT_TISSUE_THICKNESS, draw_thickness, tissue_prior, tissue_site
+from kinematics.gait.soft_tissue import DEFAULT_TISSUE, SOFT_TISSUE_THICKNESS, draw_thickness, tissue_prior, tissue_site
 
 
 def test_marker_names_map_to_their_site():

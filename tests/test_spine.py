@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinematics.coupling import initial_projector
-from kinematics.errors import InputError
-from kinematics.joints import SwingJoint
-from kinematics.prioritized import ConstraintSet, LinearConstraint, RecruitingError
-from kinematics.spine import (KinematicTasks, balanced_posture_tasks, isolated_spine, isolated_spine_tasks,
+from kinematics.multibody.coupling import initial_projector
+from lowerlimb.errors import InputError
+from kinematics.multibody.joints import SwingJoint
+from kinematics.algorithms.prioritized import ConstraintSet, LinearConstraint, RecruitingError
+from kinematics.mechanisms.spine import (KinematicTasks, balanced_posture_tasks, isolated_spine, isolated_spine_tasks,
                               mannequin, periodic_drift, posture_distance, spine_coordinates, spine_distance,
                               spine_drift_bound, spine_layout, spine_solver, swing_components,
                               torsion_direction_changes, vertebral_twist)

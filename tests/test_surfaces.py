@@ -11,7 +11,7 @@ import scipy.ndimage as ndi
 import pytest
 import trimesh
 
-from personalize.errors import InputError
+from lowerlimb.errors import InputError
 from personalize.io import LabelVolume
 from personalize.surfaces import (clean_mask, extract_surface, load_bones, point_cloud, surface_distance,
                                   surfaces_from_labels)

@@ -1,4 +1,4 @@
-"""Kinetostatic transmission elements and their composition along a model tree (kinematics.transmission)."""
+"""Kinetostatic transmission elements and their composition along a model tree (kinematics.mechanisms.transmission)."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,9 +6,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from kin_helpers import leg_model
-from kinematics.fk import frame_jacobian, point_jacobian
-from kinematics.joints import Transform
-from kinematics.transmission import (AppliedLoad, FrameState, JointElement, MassElement, RigidLink,
+from kinematics.algorithms.fk import frame_jacobian, point_jacobian
+from kinematics.multibody.joints import Transform
+from kinematics.mechanisms.transmission import (AppliedLoad, FrameState, JointElement, MassElement, RigidLink,
                                      TransmissionChain, skew)
 
 

@@ -7,7 +7,7 @@ from html.parser import HTMLParser
 import numpy as np
 import pytest
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 from personalize.validate import (DEFAULT_RANGES, SURFACE_JOB, draw_subjects, flatten_metrics, fusion_statistics, metric_groups,
                                   metric_statistics, read_metrics, run_validation)
 

@@ -33,7 +33,7 @@ def batch(
     """Run the per-subject job on every subject of a manifest with dask.distributed."""
     from rich.console import Console
 
-    from kinematics.errors import InputError
+    from lowerlimb.errors import InputError
 
     from ..cohort import print_batch, run_batch
 

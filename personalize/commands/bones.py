@@ -28,9 +28,9 @@ from typing import Optional
 import numpy as np
 import typer
 
-from kinematics.atomic import inside
+from lowerlimb.atomic import inside
 
-from ..errors import InputError
+from lowerlimb.errors import InputError
 from ..outputs import check_output_dir, replaced_dir
 
 

@@ -30,12 +30,12 @@ from typing import List, Optional
 import numpy as np
 import typer
 
-from kinematics.atomic import inside
-from kinematics.correlative import (CorrelativeLaw, TextTable, coefficient_table, deviation_table, fit_law,
+from lowerlimb.atomic import inside
+from kinematics.mechanisms.correlative import (CorrelativeLaw, TextTable, coefficient_table, deviation_table, fit_law,
                                     fit_laws_by_group, json_text, plot_deviation)
-from kinematics.storage import Table, guess_rotational, read_mot, read_sto
+from kinematics.io.storage import Table, guess_rotational, read_mot, read_sto
 
-from ..errors import InputError
+from lowerlimb.errors import InputError
 from ..outputs import check_output_dir, replaced_dir
 
 ROTATIONS = ("flexion", "adduction", "rotation")

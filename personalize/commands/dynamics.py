@@ -1,6 +1,6 @@
 """``personalize dynamics MODEL.osim KINEMATICS.mot (--loads GRF.mot LOADS.xml | --c3d TRIAL.c3d) --out DIR``.
 
-Inverse dynamics of a whole trial (`kinematics.inverse_dynamics.trial_inverse_dynamics`):
+Inverse dynamics of a whole trial (`kinematics.gait.inverse_dynamics.trial_inverse_dynamics`):
 the coordinates are low-pass filtered (``--cutoff``, 6 Hz; OpenSim's
 InverseDynamicsTool filter by default, ``--filter winter`` for Winter's
 corrected double pass; ``--cutoff auto``: Winter's residual analysis, median
@@ -40,7 +40,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 
 __all__ = ["register", "run_dynamics"]
 
@@ -56,7 +56,7 @@ def plot_moments(path: Path, result) -> None:
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
 
-    from kinematics.atomic import atomic_path
+    from lowerlimb.atomic import atomic_path
 
     fig = Figure(figsize=(11, 6.5), constrained_layout=True)
     axes = fig.subplots(2, 3, sharex=True).ravel()
@@ -85,11 +85,11 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
     """Library form of the command; returns the report dict."""
     from rich.console import Console
 
-    from kinematics.external_loads import read_external_loads, write_external_loads
-    from kinematics.inverse_dynamics import (loads_from_c3d, trial_inverse_dynamics,
+    from kinematics.io.external_loads import read_external_loads, write_external_loads
+    from kinematics.gait.inverse_dynamics import (loads_from_c3d, trial_inverse_dynamics,
                                              write_inverse_dynamics, write_joint_powers)
-    from kinematics.opensim_io import load_osim
-    from kinematics.storage import read_mot, write_sto
+    from kinematics.io.opensim_io import load_osim
+    from kinematics.io.storage import read_mot, write_sto
 
     from ..outputs import check_output_dir, replaced_dir
 
@@ -118,7 +118,7 @@ def run_dynamics(model_path: Path, kinematics: Path, out: Path, *, loads: Option
     notes: list[str] = []
     per_coordinate = None
     if auto:
-        from kinematics.filtering import choose_cutoff
+        from kinematics.gait.filtering import choose_cutoff
 
         cutoff, per = choose_cutoff(q, 1.0 / float(np.mean(np.diff(tab.time))))
         per_coordinate = {c: (None if not np.isfinite(v) else float(v)) for c, v in zip(model.coordinate_names, per)}

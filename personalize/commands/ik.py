@@ -1,6 +1,6 @@
 """``personalize ik MODEL.osim TRIAL.trc --out RESULT.mot``: marker inverse kinematics.
 
-Runs the engine's IK (kinematics.ik.solve_ik) with the marker weights and
+Runs the engine's IK (kinematics.algorithms.ik.solve_ik) with the marker weights and
 coordinate tasks of an optional OpenSim IK setup file and writes
 
 * ``RESULT.mot``: generalized coordinates in OpenSim's format (degrees for
@@ -20,7 +20,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 
 
 def run_ik(model_path: Path, trial_path: Path, out: Path, setup: Optional[Path] = None,
@@ -30,9 +30,9 @@ def run_ik(model_path: Path, trial_path: Path, out: Path, setup: Optional[Path] 
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from kinematics.ik import check_trial_scale, read_ik_setup, solve_ik
-    from kinematics.opensim_io import load_osim
-    from kinematics.storage import read_trc, write_mot, write_sto
+    from kinematics.algorithms.ik import check_trial_scale, read_ik_setup, solve_ik
+    from kinematics.io.opensim_io import load_osim
+    from kinematics.io.storage import read_trc, write_mot, write_sto
 
     console = Console(stderr=True, quiet=quiet)
     if limits not in ("clamped", "all", "none"):

@@ -2,7 +2,7 @@
 
 Reconstructs the legs of a marker trial with Plug-in-Gait (hip first),
 the seed's foot-to-hip model, or both blended per frame with Gaussian weights
-(`kinematics.reconstruction`, `kinematics.chain_blend`) and writes into
+(`kinematics.gait.reconstruction`, `kinematics.gait.chain_blend`) and writes into
 DIR (staged: nothing is written on error):
 
 ``centres.trc``
@@ -33,15 +33,15 @@ from typing import Optional
 import numpy as np
 import typer
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 
 __all__ = ["run_markers", "register", "read_trial", "plot_angles"]
 
 
 def read_trial(path: Path, subject_name: Optional[str] = None):
     """MarkerTrial from a .c3d (mm in the file) or .trc file; `subject_name` picks a Vicon subject's labels."""
-    from kinematics.c3d import read_c3d
-    from kinematics.storage import read_trc
+    from kinematics.io.c3d import read_c3d
+    from kinematics.io.storage import read_trc
 
     p = Path(path)
     if not p.is_file():
@@ -83,14 +83,14 @@ def plot_angles(path: Path, time: np.ndarray, angles: dict) -> None:
         ax.set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=8)
     with_path = Path(path)
-    from kinematics.atomic import atomic_path
+    from lowerlimb.atomic import atomic_path
 
     with atomic_path(with_path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
 
 
 def _gaps(trial, max_gap: float, label: str, notes: list, gap_log: list):
-    from kinematics.c3d import fill_gaps
+    from kinematics.io.c3d import fill_gaps
 
     filled, report = fill_gaps(trial, max_gap)
     for g in report.gaps:
@@ -106,14 +106,14 @@ def run_markers(trial: Path, *, method: str, out: Path, subject: Optional[Path] 
                 functional: Optional[Path] = None, max_gap: float = 0.1, plot: bool = True,
                 overwrite: bool = False, subject_name: Optional[str] = None) -> dict:
     """Run the command; returns the report dict."""
-    from kinematics.atomic import inside, write_text
+    from lowerlimb.atomic import inside, write_text
 
     from ..outputs import check_output_dir, replaced_dir
-    from kinematics.correlative import json_text
-    from kinematics.markers import MarkerTrial
-    from kinematics.reconstruction import ANGLE_COLUMNS, CENTRE_MARKERS, METHODS, reconstruct
-    from kinematics.storage import write_mot, write_trc
-    from kinematics.subject import read_subject
+    from kinematics.mechanisms.correlative import json_text
+    from kinematics.io.markers import MarkerTrial
+    from kinematics.gait.reconstruction import ANGLE_COLUMNS, CENTRE_MARKERS, METHODS, reconstruct
+    from kinematics.io.storage import write_mot, write_trc
+    from kinematics.gait.subject import read_subject
 
     if method not in METHODS:
         raise InputError("--method", f"{method!r} is not one of {', '.join(METHODS)}")
@@ -133,7 +133,7 @@ def run_markers(trial: Path, *, method: str, out: Path, subject: Optional[Path] 
     # against the subject file (the static itself is checked against it in `reconstruct`)
     if "static" in raw and all(m in raw["static"].names for m in ("RASI", "LASI", "RPSI", "LPSI")):
         if all(m in raw["static"].names for m in ("RANK", "LANK")):
-            from kinematics.subject import validate_static
+            from kinematics.gait.subject import validate_static
 
             validate_static(subj, raw["static"])    # the static against the subject file first
         check_same_subject(raw["static"], [v for k, v in raw.items() if k != "static"])

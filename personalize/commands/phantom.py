@@ -19,7 +19,7 @@ from pathlib import Path
 
 import typer
 
-from kinematics.errors import InputError
+from lowerlimb.errors import InputError
 
 NOISE_LEVELS = {"none": 0.0, "low": 0.25, "medium": 0.5, "high": 1.0}
 
@@ -147,7 +147,7 @@ def _real_phantom(out: Path, anatomy: Path | None, reference: Path | None, *, se
     """``--anatomy DIR --reference MODEL.osim``: a phantom on real bones (`phantoms.real_subject`)."""
     from rich.console import Console
 
-    from kinematics.marker_sets import resolve_marker_set
+    from kinematics.io.marker_sets import resolve_marker_set
     from phantoms.lab import make_lab
     from phantoms.real_anatomy import load_real_anatomy
     from phantoms.real_subject import write_real_subject

@@ -14,10 +14,10 @@ from typing import Optional
 import numpy as np
 import typer
 
-from kinematics.atomic import inside
+from lowerlimb.atomic import inside
 
-from ..bones import canonical_bone_name
-from ..errors import InputError
+from lowerlimb.bones import canonical_bone_name
+from lowerlimb.errors import InputError
 from ..outputs import check_output_dir, replaced_dir
 
 _SCALE = {"m": 1.0, "mm": 1e3, "um": 1e6, "cm": 1e2}

@@ -4,7 +4,7 @@ Every ``fit_*`` function takes ``points`` (N, 3), optional ``normals`` (N, 3)
 and ``weights`` (N,), works in any length unit (the project passes metres) and
 returns a frozen result with the shape parameters, ``covariance``, ``rms``,
 ``inlier_weights``, ``n_iterations``, ``converged`` and ``residuals(points)``.
-Failures raise `FittingError` (a `kinematics.errors.FitError`) or one of its
+Failures raise `FittingError` (a `lowerlimb.errors.FitError`) or one of its
 subclasses: `TooFewPointsError`, `NonFiniteError`, `DegenerateError`,
 `NotConvergedError`.
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kinematics.errors import FitError
+from lowerlimb.errors import FitError
 
 __all__ = [
     "FittingError",

@@ -150,7 +150,7 @@ def fit_sphere(points, normals=None, weights=None, *, robust: bool = True,
     Raises
     ------
     TooFewPointsError, NonFiniteError, DegenerateError, NotConvergedError
-        All subclasses of `FittingError` (itself a `kinematics.errors.FitError`).
+        All subclasses of `FittingError` (itself a `lowerlimb.errors.FitError`).
 
     Notes
     -----

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from typing import Callable, Mapping
 
-from kinematics.errors import FitError, InputError
-from personalize.bones import BONE_NAMES, canonical_bone_name
+from lowerlimb.errors import FitError, InputError
+from lowerlimb.bones import BONE_NAMES, canonical_bone_name
 from personalize.io import MESH_SUFFIXES, POINT_SUFFIXES
 
 from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_NOT_CLOSED, FLAG_SIDE_MISMATCH, Axis,

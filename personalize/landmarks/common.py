@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from kinematics.errors import FitError, InputError
+from lowerlimb.errors import FitError, InputError
 
 __all__ = [
     "Landmark", "Axis", "BoneLandmarks", "LandmarkSet", "Surface", "as_surface",

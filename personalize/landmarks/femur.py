@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinematics.errors import FitError
+from lowerlimb.errors import FitError
 
 from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_TRUNCATED, Axis, BoneLandmarks, Landmark, Surface,
                      axis_sd_deg, extreme_vertex, hough_centres, line_through, long_bone_axes, orient,

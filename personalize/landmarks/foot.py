@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinematics.errors import FitError
+from lowerlimb.errors import FitError
 
 from .common import (FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark, Surface, extreme_vertex, perpendicular,
                      principal_axes, refine_sphere, sphere_centre_cov, unit)

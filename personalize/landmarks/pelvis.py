@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinematics.errors import FitError
+from lowerlimb.errors import FitError
 
 from .common import (FLAG_LOW_CONFIDENCE, BoneLandmarks, Landmark, Surface, extreme_vertex,
                      hough_centres, perpendicular, refine_sphere, sphere_centre_cov, unit)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kinematics.errors import FitError
+from lowerlimb.errors import FitError
 
 from .common import (FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark, Surface, axis_sd_deg,
                      hough_centres, largest_patch, line_through, orient, perpendicular,

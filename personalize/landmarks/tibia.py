@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinematics.errors import FitError
+from lowerlimb.errors import FitError
 
 from personalize.fitting import fit_cylinder
 

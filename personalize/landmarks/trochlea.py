@@ -38,7 +38,7 @@ from scipy.optimize import curve_fit
 from scipy.spatial import ConvexHull
 from scipy.sparse.csgraph import connected_components
 
-from kinematics.errors import FitError
+from lowerlimb.errors import FitError
 
 from .common import Surface, orient, unit
 

@@ -1,0 +1,1 @@
+"""Mechanisms: correlative joints, transmission elements, distance chords and coupled spines."""

@@ -1,0 +1,1 @@
+"""The multibody model: bodies, coordinates, joints, scalar functions and couplers (immutable descriptions)."""
