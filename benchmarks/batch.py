@@ -1,6 +1,6 @@
 """Benchmark: cohort throughput of ``personalize.cohort.run_batch`` with 1 and 2 dask workers.
 
-Job: ``personalize.demo.run_demo`` on one phantom per subject (phantom seed =
+Job: ``personalize.evaluation.demo.run_demo`` on one phantom per subject (phantom seed =
 subject index, ``--voxel`` mm label volume: write the phantom, extract the bone
 surfaces, compare with the exact ones).  Each configuration runs the same
 ``--subjects`` subjects into a fresh output folder on a new LocalCluster of K
@@ -37,7 +37,7 @@ def demo_job(subject_dir: Path, out: Path, progress=None) -> dict:
     """Adapter: run ``run_demo`` with the seed and voxel size stored in ``subject_dir/demo.json``."""
     import time as _t
 
-    from personalize.demo import run_demo
+    from personalize.evaluation.demo import run_demo
 
     spec = json.loads((Path(subject_dir) / "demo.json").read_text())
     c0, w0 = _t.process_time(), _t.perf_counter()
@@ -86,7 +86,7 @@ def main(argv=None) -> int:
     if base:
         for r in results:
             print(f"speed-up with {r['workers']} worker(s): {r['speedup_vs_1_worker']:.2f}x")
-    payload = {"benchmark": "batch", "job": "personalize.demo.run_demo", "voxel_mm": args.voxel,
+    payload = {"benchmark": "batch", "job": "personalize.evaluation.demo.run_demo", "voxel_mm": args.voxel,
                "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
                "results": results}
     write_text(args.json, json.dumps(payload, indent=1) + "\n")

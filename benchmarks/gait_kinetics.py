@@ -73,7 +73,7 @@ def mocap_pig(data: Path, out: Path) -> dict:
     from kinematics.gait.pig import plug_in_gait, static_foot_offsets
     from kinematics.gait.pig_kinetics import ground_reactions, plug_in_gait_kinetics
     from kinematics.gait.subject import read_vsk
-    from personalize.gait_plots import (
+    from personalize.presentation.gait_plots import (
         plot_foot_angle_fit,
         plot_gait_grid,
         plot_power_row,

@@ -100,7 +100,7 @@ __all__ = ["run_subject", "SubjectInputs", "find_inputs", "estimate_joints", "Jo
            "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES", "write_phantom_subject", "SHORT_TRIALS", "MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MOTION_HIP_STA_COV", "fuse_hips", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE", "PIG_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD", "MRI_CENTRE_COV_SCALE",
            "MRI_CENTRE_COV_SCALE_MEASURED"]
 
-#: Hip error models, calibrated on 24 TRAINING phantom subjects (48 legs; `personalize.validate.draw_subjects(24,
+#: Hip error models, calibrated on 24 TRAINING phantom subjects (48 legs; `personalize.evaluation.validate.draw_subjects(24,
 #: seed=1000)`, never a validation seed; benchmarks/results/fusion_calibration*.json; a 12/12 split of the same
 #: subjects checks them on held-out legs).  The phantoms' pelvis markers sit along the bone normal over soft
 #: tissue drawn per subject from `kinematics.gait.soft_tissue` (the registration's prior), so the MRI hip is unbiased
@@ -1099,7 +1099,7 @@ def _report(path: Path, summary: dict, est: JointEstimates, ik: dict, ls, surfac
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .report import Figure, Section, Table, render_report
+    from personalize.presentation.html_report import Figure, Section, Table, render_report
 
     rows = []
     for s in est.centres:
@@ -1284,7 +1284,7 @@ def _refusal_report(out: Path, subject_dir, exc: BaseException) -> None:
 
 
 def _refusal_page(stage: Path, subject_dir, kind: str, text: str) -> None:
-    from .report import Section, render_report
+    from personalize.presentation.html_report import Section, render_report
 
     render_report(inside(stage, "report.html"), f"Personalised model: {Path(subject_dir).name} refused", [
         Section(kind, [" ".join(text.split()), "The subject was refused: no model, kinematics or summary.json was written."]),

@@ -109,7 +109,7 @@ def test_vertical_force_events():
 
 
 def test_csv_and_plots(tmp_path):
-    from personalize.gait_plots import plot_gait_grid
+    from personalize.presentation.gait_plots import plot_gait_grid
 
     t = np.arange(300) / 100.0
     cyc = [_cycle(0.2, 1.2, 0.8), _cycle(1.2, 2.4, 1.92)]

@@ -279,7 +279,7 @@ def test_markers_of_the_mirrored_side(subject, tmp_path, capsys):
 # --------------------------------------------------------------------------- personalize demo
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    from personalize.demo import run_demo
+    from personalize.evaluation.demo import run_demo
 
     out = tmp_path_factory.mktemp("demo") / "out"
     return out, run_demo(out, seed=1, voxel_mm=2.0, short=True)

@@ -1,4 +1,4 @@
-"""personalize.report: self-contained HTML with escaped text, tables and embedded PNG figures."""
+"""personalize.presentation.html_report: self-contained HTML with escaped text, tables and embedded PNG figures."""
 from __future__ import annotations
 
 import base64
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lowerlimb.errors import InputError
-from personalize.report import (Figure, Section, Table, find_chromium, headless_screenshot, new_figure, png_bytes,
+from personalize.presentation.html_report import (Figure, Section, Table, find_chromium, headless_screenshot, new_figure, png_bytes,
                                 render_report)
 
 

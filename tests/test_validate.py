@@ -1,4 +1,4 @@
-"""personalize.validate: random phantom cohorts, metrics.csv and the distribution report."""
+"""personalize.evaluation.validate: random phantom cohorts, metrics.csv and the distribution report."""
 from __future__ import annotations
 
 import json
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lowerlimb.errors import InputError
-from personalize.validate import (DEFAULT_RANGES, SURFACE_JOB, draw_subjects, flatten_metrics, fusion_statistics, metric_groups,
+from personalize.evaluation.validate import (DEFAULT_RANGES, SURFACE_JOB, draw_subjects, flatten_metrics, fusion_statistics, metric_groups,
                                   metric_statistics, read_metrics, run_validation)
 
 SMALL = {"inplane_mm": (2.5, 3.0), "slice_mm": (3.0, 3.5)}  # coarse voxels keep the test fast
@@ -114,7 +114,7 @@ def test_validate_command_refuses_bad_options(tmp_path, capsys):
 
 def test_report_of_pipeline_shaped_metrics(tmp_path):
     """Headline metrics (errors per source, IK RMS) are tabled and plotted; estimates only go to metrics.csv."""
-    from personalize.validate import validation_report
+    from personalize.evaluation.validate import validation_report
 
     rng = np.random.default_rng(0)
     rows = []

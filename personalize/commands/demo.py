@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
         """Run the pipeline on a built-in phantom subject and print its errors against the known truth."""
         from rich.console import Console
 
-        from ..demo import render_summary, run_demo
+        from personalize.evaluation.demo import render_summary, run_demo
         from ..progress import StepProgress
 
         console = Console()

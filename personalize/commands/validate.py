@@ -7,7 +7,7 @@ every error against truth) and ``DIR/report.html`` (statistics and
 distributions).  Re-running with the same N and seed resumes.  Exit code 1
 when some subject failed (listed in the report), 2 for bad options.
 
-``--realistic`` runs the realistic set instead (`personalize.validate.run_realistic_validation`:
+``--realistic`` runs the realistic set instead (`personalize.evaluation.validate.run_realistic_validation`:
 real and analytic anatomy, four marker sets, both lab orientations, three body builds, files
 named and recorded as labs do); a subject today's pipeline refuses is a row of ``metrics.csv``
 with its one-line reason, so the run exits 0 once every row is written.
@@ -38,11 +38,11 @@ def validate(
     from rich.console import Console
 
     from ..cohort import print_batch
-    from ..validate import run_validation
+    from personalize.evaluation.validate import run_validation
 
     console = Console(stderr=True)
     if realistic:
-        from ..validate import run_realistic_validation
+        from personalize.evaluation.validate import run_realistic_validation
 
         res = run_realistic_validation(subjects, seed, out, data_root=data, scheduler=scheduler or None,
                                        workers=workers, job=job or None, console=console)

@@ -39,7 +39,7 @@ import numpy as np
 from lowerlimb.atomic import inside, staged_dir, write_text
 from lowerlimb.errors import InputError
 
-from .cohort import DEFAULT_JOB, BatchResult, Subject, resolve_job, run_batch, write_manifest
+from personalize.cohort import DEFAULT_JOB, BatchResult, Subject, resolve_job, run_batch, write_manifest
 
 #: estimate sources, in display order
 SOURCES = ("mri", "motion", "fused")
@@ -52,7 +52,7 @@ TABLE_ONLY_EXCLUDED = ("estimates", "truth_frame")
 #: marker of a fully written phantom subject (written after everything else)
 GENERATED = "generated.json"
 SPEC = "phantom.json"
-SURFACE_JOB = "personalize.validate:phantom_surfaces_job"
+SURFACE_JOB = "personalize.evaluation.validate:phantom_surfaces_job"
 
 #: default ranges of the random draws (uniform unless noted)
 DEFAULT_RANGES = {
@@ -214,8 +214,8 @@ def phantom_surfaces_job(subject_dir: Path, out: Path, progress: Callable[[str],
     """
     import trimesh
 
-    from .demo import DEMO_SURFACE_BONES
-    from .surfaces import load_bones, surface_distance
+    from personalize.evaluation.demo import DEMO_SURFACE_BONES
+    from personalize.surfaces import load_bones, surface_distance
 
     d = Path(subject_dir)
     lmap = json.loads((d / "label_map.json").read_text(encoding="utf-8"))
@@ -363,7 +363,7 @@ def fusion_statistics(rows: Sequence[dict]) -> list[dict]:
 
 # --------------------------------------------------------------------------- report
 def _box_figure(group: str, items: list[tuple[str, str]], rows: Sequence[dict]):
-    from .report import new_figure
+    from personalize.presentation.html_report import new_figure
 
     fig = new_figure(max(3.5, 1.1 * len(items) + 1.5), 3.4)
     ax = fig.add_subplot()
@@ -384,7 +384,7 @@ def _box_figure(group: str, items: list[tuple[str, str]], rows: Sequence[dict]):
 
 
 def _hist_figure(column: str, rows: Sequence[dict]):
-    from .report import new_figure
+    from personalize.presentation.html_report import new_figure
 
     fig = new_figure(4.0, 3.0)
     ax = fig.add_subplot()
@@ -399,7 +399,7 @@ def _hist_figure(column: str, rows: Sequence[dict]):
 def validation_report(path: str | os.PathLike, rows: Sequence[dict], metric_columns: Sequence[str],
                       factor_columns: Sequence[str], *, seed: int, job: str, batch: BatchResult | None = None) -> Path:
     """Write ``report.html``: cohort, metric statistics, distribution plots, failures, draws."""
-    from .report import Figure, Section, Table, render_report
+    from personalize.presentation.html_report import Figure, Section, Table, render_report
 
     ok = [r for r in rows if r["status"] in ("ok", "skipped")]
     failed = [r for r in rows if r["status"] == "error"]
@@ -767,7 +767,7 @@ def run_realistic_validation(n: int, seed: int, out: str | os.PathLike, *, data_
     Metrics per subject: every numeric summary entry (joint centre and axis errors of the MRI-only,
     motion-only and fused estimates, IK angle RMSE, IK residuals) plus `coverage_metrics`.
     """
-    from .report import Section, Table, render_report
+    from personalize.presentation.html_report import Section, Table, render_report
 
     out = Path(out)
     if out.exists() and not out.is_dir():

@@ -13,7 +13,7 @@ A report is a list of `Section` objects; a section's items may be
 * `Figure`, a ``matplotlib.figure.Figure`` or a path to a ``.png`` file;
 * a nested `Section` (sub-heading).
 
->>> from personalize.report import Section, Table, render_report
+>>> from personalize.presentation.html_report import Section, Table, render_report
 >>> render_report("out/report.html", "Subject S01",
 ...               [Section("Joint centres", ["Right hip, mm.", Table(["source", "x"], [["mri", 1.0]])])])
 """

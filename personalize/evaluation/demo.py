@@ -27,7 +27,7 @@ DEMO_SURFACE_BONES = ("pelvis", "femur_r", "tibia_r", "femur_l", "tibia_l")
 
 def surface_errors(ph, surfaces: dict, bones=DEMO_SURFACE_BONES) -> dict:
     """Mean/max surface distance (mm) and volume error (%) of extracted surfaces against the phantom's exact ones."""
-    from .surfaces import surface_distance
+    from personalize.surfaces import surface_distance
 
     rows = {}
     for b in bones:
@@ -66,7 +66,7 @@ def run_demo(out: str | Path, seed: int = 0, voxel_mm: float = 1.0,
         Replace a non-empty `out` that is not an earlier demo (one with ``demo.json``
         is always replaced).  `out` is replaced whole; on error it keeps its old content.
     """
-    from .outputs import check_output_dir, fresh_dir
+    from personalize.outputs import check_output_dir, fresh_dir
 
     say = progress or (lambda msg: None)
     out = Path(out)
@@ -79,8 +79,8 @@ def _run_demo(out: Path, *, ph_seed: int, voxel_mm: float, say, pipeline: bool, 
     from phantoms import make_phantom
     from phantoms.subject import write_subject
 
-    from .pipeline import SHORT_TRIALS, run_subject
-    from .surfaces import load_bones
+    from personalize.pipeline import SHORT_TRIALS, run_subject
+    from personalize.surfaces import load_bones
 
     seed = ph_seed
     say(f"building phantom (seed {seed})")

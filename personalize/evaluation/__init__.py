@@ -1,0 +1,1 @@
+"""Evaluation against known truth: truth comparison, phantom and realistic validation, the demo."""
