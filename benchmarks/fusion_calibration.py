@@ -49,11 +49,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from lowerlimb.geometry import skew  # noqa: E402  (after the sys.path line)
+
 MIRROR = np.diag([1.0, -1.0, 1.0])
-
-
-def _skew(v):
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
 def load(cache: Path) -> list[dict]:
@@ -72,7 +70,7 @@ def load(cache: Path) -> list[dict]:
         J, own = {}, {}
         for s, v in r["sides"].items():
             x = np.array(v["mri"][0])
-            J[s] = np.hstack([-_skew(x - c), np.eye(3)])
+            J[s] = np.hstack([-skew(x - c), np.eye(3)])
             own[s] = R @ np.array(v["hip_scanner_cov"]) @ R.T
             sub["sides"][s] = {"x_mri": x, "C_mri": np.array(v["mri"][1]), "x_mot": np.array(v["score"][0]),
                                "C_score": np.array(v["score"][1]), "C_mot_claimed": np.array(v["motion"][1]),

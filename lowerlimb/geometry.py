@@ -20,7 +20,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["unit", "skew", "frame_zy", "frame_yz", "kabsch", "kabsch_rotation", "vertex_normals",
-           "DEFAULT_MARKER_DIAMETER", "marker_radius"]
+           "orient", "DEFAULT_MARKER_DIAMETER", "DEFAULT_MARKER_RADIUS", "marker_radius"]
 
 
 def unit(v, *, where: str | None = None) -> np.ndarray:
@@ -44,6 +44,11 @@ def unit(v, *, where: str | None = None) -> np.ndarray:
     if where is not None and (not np.all(np.isfinite(n)) or np.any(n < 1e-12)):
         raise InputError(where, "a zero or non-finite direction")
     return v / n
+
+
+def orient(v, ref) -> np.ndarray:
+    """``v`` flipped if needed so that it points along ``ref`` (``v . ref >= 0``); one vector."""
+    return v if float(np.dot(v, ref)) >= 0 else -np.asarray(v)
 
 
 def skew(v) -> np.ndarray:
@@ -177,3 +182,7 @@ DEFAULT_MARKER_DIAMETER = 0.014
 def marker_radius(diameter: float = DEFAULT_MARKER_DIAMETER) -> float:
     """Radius (m) of a spherical marker of the given diameter: the marker centre sits this far off the skin."""
     return 0.5 * float(diameter)
+
+
+#: radius of the default marker (m): the only radius constant; a subject's own size comes as a diameter
+DEFAULT_MARKER_RADIUS = marker_radius(DEFAULT_MARKER_DIAMETER)

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from lowerlimb.bones import BONE_NAMES, mirror_name
+from lowerlimb.geometry import frame_yz, frame_zy, unit
 
 from .sdf import (
     SDF, CappedCylinder, Difference, Ellipsoid, Intersection, Offset, RoundCone, Sphere,
@@ -42,11 +43,6 @@ from .sdf import (
 MIRROR = np.diag([1.0, 1.0, -1.0, 1.0])
 I3 = np.eye(3)
 X, Y, Z = I3
-
-
-def _unit(v) -> np.ndarray:
-    v = np.asarray(v, float)
-    return v / np.linalg.norm(v)
 
 
 def _T(t=(0, 0, 0), R=None) -> np.ndarray:
@@ -66,15 +62,15 @@ def _apply(A: np.ndarray, p) -> np.ndarray:
 
 def _rot(axis, angle) -> np.ndarray:
     """Rotation matrix about a unit axis (Rodrigues)."""
-    k = _unit(axis)
+    k = unit(axis)
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
 def _cone(axis, half_angle_deg: float, n: int = 8) -> np.ndarray:
     """Unit vectors: `axis` and two rings of `n` at half and full `half_angle_deg` around it, (2n+1, 3)."""
-    a = _unit(axis)
-    e1 = _unit(np.cross(a, X if abs(a[0]) < 0.9 else Y))
+    a = unit(axis)
+    e1 = unit(np.cross(a, X if abs(a[0]) < 0.9 else Y))
     e2 = np.cross(a, e1)
     out = [a]
     for t in np.deg2rad([0.5 * half_angle_deg, half_angle_deg]):
@@ -235,7 +231,7 @@ def _knob(tip, direction, radii, R) -> Ellipsoid:
     ``c + R D^2 R^T n / sqrt(n^T R D^2 R^T n)``.
     """
     M = R @ np.diag(np.asarray(radii, float) ** 2) @ R.T
-    n = _unit(direction)
+    n = unit(direction)
     off = M @ n / np.sqrt(n @ M @ n)
     return _E(np.asarray(tip, float) - off, radii, R)
 
@@ -251,13 +247,13 @@ def _build_pelvis_half(d: dict, femoral_head_radius: float):
     R_a = femoral_head_radius + 0.0025 * s                     # cartilage gap
     asis_c = RASI - r_as * X
     psis_c = RPSI + r_ps * X
-    u1 = _unit(asis_c - psis_c)
-    lat = _unit(np.cross(u1, Y))
-    yw = _unit(np.cos(np.deg2rad(20)) * Y + np.sin(np.deg2rad(20)) * lat)
+    u1 = unit(asis_c - psis_c)
+    lat = unit(np.cross(u1, Y))
+    yw = unit(np.cos(np.deg2rad(20)) * Y + np.sin(np.deg2rad(20)) * lat)
     Rw = rotation_from_axes(x=u1, y=yw)
     a1 = 0.5 * np.linalg.norm(asis_c - psis_c) - 0.014 * s
     wing = _E((asis_c + psis_c) / 2 - 0.015 * s * Y, [a1, 0.058 * s, 0.0085 * s], Rw)
-    n_open = _unit([0.35, -0.55, 0.75])
+    n_open = unit([0.35, -0.55, 0.75])
     cup = _S(H - 0.012 * s * n_open, R_a + 0.0045 * s)
     sym_c = np.array([0.0095 * d["pelvis_depth"], -0.088 * d["pelvis_width"], 0.0])
     ramus_sup = _RC(H + np.array([0.012, -0.006, -0.022]) * s, sym_c + np.array([-0.004, 0.008, 0.014]) * s,
@@ -295,7 +291,7 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     u_s = np.array([0.0, np.cos(th), np.sin(th)])     # shaft axis, proximal
     beta = np.deg2rad(params.femoral_anteversion_deg)
     # medial direction in the plane normal to the shaft, rotated anteriorly (about the shaft) by anteversion
-    med = _unit(-Z + (Z @ u_s) * u_s)
+    med = unit(-Z + (Z @ u_s) * u_s)
     w = np.cos(beta) * med + np.sin(beta) * X
     gam = np.deg2rad(180.0 - params.neck_shaft_deg)
     u_n = np.cos(gam) * u_s + np.sin(gam) * w           # neck axis, towards the head
@@ -410,7 +406,7 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     tb = _Bone(tibia_sdf, body_from_tibia)
     tb.landmarks = {"plateau_centre": P(plateau_centre), "RTTB": P(RTTB), "RMMA": P(RMMA),
                     "plafond_centre": P(Afr([0, R_p, 0]))}
-    tb.axes = {"shaft_axis": (P(P_top), _unit(P_top - P_bot)), "knee_axis": (P(np.zeros(3)), Z.copy()),
+    tb.axes = {"shaft_axis": (P(P_top), unit(P_top - P_bot)), "knee_axis": (P(np.zeros(3)), Z.copy()),
                "ankle_axis": (P(A), Za)}
     tb.scalars = {"plafond_radius": R_p}
     tb.checks = {"plafond_arc": np.array([P(Afr([R_p * np.sin(a), R_p * np.cos(a), z]))
@@ -466,7 +462,7 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
         CappedCylinder(np.zeros(3), np.eye(3), R_d, h_d, 0.002 * s),
         _E([-0.003 * s, -0.014 * s, 0.0], np.array([0.023, 0.016, h_d / s]) * s),
         # talar neck: from the body towards the head, which points along the foot, anteromedially
-        _RC(Rta @ (np.array([0.004, -0.014, -0.002]) * d["talus"]), head_c - 0.008 * d["talus"] * _unit(Rta @ X),
+        _RC(Rta @ (np.array([0.004, -0.014, -0.002]) * d["talus"]), head_c - 0.008 * d["talus"] * unit(Rta @ X),
             0.0095 * d["talus"], 0.0094 * d["talus"]),
         _S(head_c, r_head),
         _E([-0.018 * s, -0.016 * s, 0.004 * s], np.array([0.008, 0.007, 0.007]) * s),
@@ -486,7 +482,7 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
                  # the talar head around the neck direction, the facet around its middle (both exact spheres)
                  "talar_head": _apply(body_from_talus, head_c + r_head * _cone(Rta @ X, 30.0)),
                  "posterior_facet": _apply(body_from_talus, facet_c + r_facet * _cone(
-                     _unit(np.array([-0.003 * s, -0.014 * s, 0.0]) - facet_c), 12.0))}
+                     unit(np.array([-0.003 * s, -0.014 * s, 0.0]) - facet_c), 12.0))}
     bones["talus"] = ta
 
     # ---------------------------------------------------------------- foot frame (calcn local)
@@ -532,12 +528,12 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     calcn_sdf = Difference(Union(tuple(calcn_parts), k=0.003 * s), Offset(Transformed(talus_raw, foot_from_talus), 0.0012 * s), k=kc)
     cb = _Bone(calcn_sdf, body_from_foot)
     (m1, r1), (m5, r5) = heads[0], heads[4]
-    dd = _unit([1.0, 1.0, 0.0])
+    dd = unit([1.0, 1.0, 0.0])
     cb.landmarks = {"RHEE": F(heel_c - r_ht * X), "RD1M": F(m1 + r1 * dd), "RD5M": F(m5 + r5 * dd),
                     "heel_contact": F(heel_c - r_ht * Y), "met1_contact": F(m1 - r1 * Y),
                     "met5_contact": F(m5 - r5 * Y)}
     cb.axes = {"hindfoot_axis": (F(cb_c), Rf @ cb_R[:, 0]),
-               "forefoot_axis": (F(bases[1]), Rf @ _unit(heads[1][0] - bases[1]))}
+               "forefoot_axis": (F(bases[1]), Rf @ unit(heads[1][0] - bases[1]))}
     bones["calcn"] = cb
     # subtalar axis: through the posterior facet and talar head centres, anterior
     ta.axes = {"ankle_axis": (ankle_body.copy(), Za),
@@ -550,7 +546,7 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     for (hc, hr), (l1, l2) in zip(heads, lengths):
         rb = 0.62 * hr
         base = hc + (hr + 0.004 * s) * X - 0.001 * s * Y
-        d1 = _unit([np.cos(np.deg2rad(8)), -np.sin(np.deg2rad(8)), 0.0])
+        d1 = unit([np.cos(np.deg2rad(8)), -np.sin(np.deg2rad(8)), 0.0])
         mid = base + l1 * fl * d1
         tip_r = 0.55 * rb
         tip = mid + l2 * fl * X
@@ -560,7 +556,7 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     toes_sdf_f = Difference(Union(tuple(toe_parts), k=0.002 * s), Offset(heads_u, 0.0012 * s), k=kc)
     toes_sdf = Transformed(toes_sdf_f, _T(-mtp_mid))
     tob = _Bone(toes_sdf, body_from_foot @ _T(mtp_mid))
-    tob.axes = {"mtp_axis": (F(mtp_mid), Rf @ _unit(m5 - m1))}
+    tob.axes = {"mtp_axis": (F(mtp_mid), Rf @ unit(m5 - m1))}
     bones["toes"] = tob
     return bones, floor
 
@@ -615,7 +611,7 @@ def _build(params: PhantomParams, rng: np.random.Generator):
                      "acetabulum_centre_r": Pp(lmr["acetabulum_centre_r"]),
                      "acetabulum_centre_l": Pp(M3 @ lml["acetabulum_centre_r"])}
     pel.scalars = {"acetabulum_radius_r": Ra_r, "acetabulum_radius_l": Ra_l}
-    n_open = _unit([0.35, -0.55, 0.75])
+    n_open = unit([0.35, -0.55, 0.75])
     cup_pts = []
     for side, lm, Ra in (("r", lmr, Ra_r), ("l", lml, Ra_l)):
         Hc = lm["acetabulum_centre_r"]
@@ -650,18 +646,6 @@ def _mirror_bone(b: _Bone) -> _Bone:
 
 
 # --------------------------------------------------------------------------- frames (rules)
-def _frame_zy(z, y_hint) -> np.ndarray:
-    """Columns X, Y, Z: Z exact, Y = y_hint orthogonalised, X = Y x Z."""
-    return rotation_from_axes(z=z, y=y_hint)
-
-
-def _frame_yz(y, z_hint) -> np.ndarray:
-    """Columns X, Y, Z: Y exact, Z = z_hint orthogonalised, X = Y x Z."""
-    Yv = _unit(y)
-    Zv = _unit(np.asarray(z_hint) - (np.dot(z_hint, Yv)) * Yv)
-    return np.column_stack([np.cross(Yv, Zv), Yv, Zv])
-
-
 # --------------------------------------------------------------------------- phantom
 class Phantom:
     """A constructed synthetic subject (immutable).
@@ -818,11 +802,11 @@ class Phantom:
         for name in self.bone_names:
             b = B[name]
             out[name] = {"landmarks": {k: np.asarray(v, float) for k, v in b.landmarks.items()},
-                         "axes": {k: (np.asarray(p, float), _unit(dv)) for k, (p, dv) in b.axes.items()},
+                         "axes": {k: (np.asarray(p, float), unit(dv)) for k, (p, dv) in b.axes.items()},
                          "scalars": dict(b.scalars), "frames": {}}
         lm = out["pelvis"]["landmarks"]
         o = (lm["RASI"] + lm["LASI"]) / 2
-        zp = _unit(lm["RASI"] - lm["LASI"])
+        zp = unit(lm["RASI"] - lm["LASI"])
         xp = o - (lm["RPSI"] + lm["LPSI"]) / 2
         out["pelvis"]["frames"]["isb"] = (o, rotation_from_axes(z=zp, x=xp))
         joints = {}
@@ -842,7 +826,7 @@ class Phantom:
             right_epi = f["landmarks"][f"{P}KNE"] - f["landmarks"][f"{P}MFC"]
             if side == "l":
                 right_epi = -right_epi
-            f["frames"]["isb"] = (hc, _frame_yz(hc - epi_mid, right_epi))
+            f["frames"]["isb"] = (hc, frame_yz(hc - epi_mid, right_epi))
             # tibia ISB-like: origin mid-malleoli, Y to the knee centre, Z towards the right malleolus
             mal = (t["landmarks"][f"{P}MMA"] + fi["landmarks"][f"{P}ANK"]) / 2
             kc = f["landmarks"]["intercondylar_midpoint"]
@@ -850,26 +834,26 @@ class Phantom:
             right_mal = fi["landmarks"][f"{P}ANK"] - t["landmarks"][f"{P}MMA"]
             if side == "l":
                 right_mal = -right_mal
-            t["frames"]["isb"] = (mal, _frame_yz(kc_t - mal, right_mal))
+            t["frames"]["isb"] = (mal, frame_yz(kc_t - mal, right_mal))
             Rb = self._bones[f"patella_{side}"].body_from_local[:3, :3]
             Rp = MIRROR[:3, :3] @ Rb @ MIRROR[:3, :3] if side == "l" else Rb
             pa["frames"]["articular"] = (pa["landmarks"]["patella_centre"], Rp)
             hcon = ca["landmarks"]["heel_contact"]
             mcon = (ca["landmarks"]["met1_contact"] + ca["landmarks"]["met5_contact"]) / 2
             n = np.cross(ca["landmarks"]["met1_contact"] - hcon, ca["landmarks"]["met5_contact"] - hcon)
-            n = _unit(n if n[1] > 0 else -n)
-            ca["frames"]["foot"] = (hcon, _frame_zy(np.cross(mcon - hcon, n), n))
+            n = unit(n if n[1] > 0 else -n)
+            ca["frames"]["foot"] = (hcon, frame_zy(np.cross(mcon - hcon, n), n))
             # joints
             joints[f"hip_{side}"] = (hc, out["pelvis"]["frames"]["isb"][1])
             kax = f["axes"]["knee_axis"][1]
-            joints[f"knee_{side}"] = (kc, _frame_zy(kax, hc - kc))
+            joints[f"knee_{side}"] = (kc, frame_zy(kax, hc - kc))
             ac = ta["landmarks"]["talar_dome_centre"]
-            joints[f"ankle_{side}"] = (ac, _frame_zy(ta["axes"]["ankle_axis"][1], kc_t - t["axes"]["ankle_axis"][0]))
+            joints[f"ankle_{side}"] = (ac, frame_zy(ta["axes"]["ankle_axis"][1], kc_t - t["axes"]["ankle_axis"][0]))
             sp, sd = ta["axes"]["subtalar_axis"]
             talus_up = self._bones[f"talus_{side}"].body_from_local[:3, 1]   # talus (ankle-frame) superior axis
-            joints[f"subtalar_{side}"] = (sp, _frame_zy(sd, talus_up))      # the posterior facet centre
+            joints[f"subtalar_{side}"] = (sp, frame_zy(sd, talus_up))      # the posterior facet centre
             mp, md = to["axes"]["mtp_axis"]
-            joints[f"mtp_{side}"] = (mp, _frame_zy(md, n))
+            joints[f"mtp_{side}"] = (mp, frame_zy(md, n))
         return {"bones": out, "joints": joints}
 
     def truth(self) -> dict:

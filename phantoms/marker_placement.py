@@ -53,12 +53,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from lowerlimb.errors import InputError
+from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
 from kinematics.io.marker_sets import MarkerSet
 
-__all__ = ["TISSUE_CLASSES", "PALPATION_SD_MM", "MARKER_RADIUS", "PlacedMarker", "find_landmarks",
+__all__ = ["TISSUE_CLASSES", "PALPATION_SD_MM", "PlacedMarker", "find_landmarks",
            "place_markers", "draw_tissue"]
 
-MARKER_RADIUS = 0.007       # m (14 mm markers)
 _MANTOVANI = "Mantovani, Ng & Lamontagne 2016, Gait Posture 44:48"
 #: body build -> site -> (mean mm, sd mm); "thigh"/"shank": soft tissue of the skin (non-bony) markers
 TISSUE_CLASSES = {
@@ -298,7 +298,7 @@ def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int
 
     placed: dict[str, PlacedMarker] = {}
     bodies = set(anat.model.body_names)
-    r = MARKER_RADIUS
+    r = DEFAULT_MARKER_RADIUS
     clusters: dict[tuple, dict] = {}
     deferred = []
     for label, md in marker_set.markers.items():

@@ -44,6 +44,7 @@ from typing import Callable
 import numpy as np
 
 from lowerlimb.errors import InputError
+from lowerlimb.geometry import kabsch
 
 __all__ = ["RealAnatomy", "load_real_anatomy", "pelvis_symmetry", "mesh_label_volume", "D_MIRROR", "SEGMENT_BONES"]
 
@@ -190,11 +191,7 @@ def pelvis_symmetry(vertices: np.ndarray, origin: np.ndarray, normal: np.ndarray
         d, i = tree.query(X)
         keep = d < 3.0 * np.median(d) + 1e-9
         A, B = X[keep], V[i[keep]]
-        ac, bc = A.mean(0), B.mean(0)
-        U, _, Wt = np.linalg.svd((A - ac).T @ (B - bc))
-        Dg = np.diag([1.0, 1.0, np.sign(np.linalg.det(Wt.T @ U.T))])
-        R = Wt.T @ Dg @ U.T
-        t = bc - R @ ac
+        R, t = kabsch(A, B)
         M, c = R @ M, R @ c + t
         if np.linalg.norm(t) < 1e-7 and np.abs(R - np.eye(3)).max() < 1e-8:
             break

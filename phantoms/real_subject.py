@@ -35,6 +35,7 @@ from typing import Callable
 import numpy as np
 
 from lowerlimb.errors import InputError
+from lowerlimb.geometry import DEFAULT_MARKER_DIAMETER
 from kinematics.io.marker_sets import MarkerDef, MarkerSet, resolve_marker_set
 from kinematics.io.markers import MarkerTrial
 
@@ -539,7 +540,7 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
     st0 = _fk(model, q0)
     kjc = {s: _joint_origin(model, st0, f"knee_{s}")[0] for s in anat.sides}
     lms = {}
-    from .marker_placement import MARKER_RADIUS, find_landmarks
+    from .marker_placement import find_landmarks
 
     for name, (bone, p) in find_landmarks(anat, q0).items():
         k = model.body_index(anat.bone_body[bone])
@@ -553,7 +554,7 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
         subject[f"{side}_knee_width"] = float(np.linalg.norm(lms[f"{P}KNE"] - lms[f"{P}MFC"]) + 2 * tissue.get(f"{P}KNE", 0.005))
         subject[f"{side}_ankle_width"] = float(np.linalg.norm(lms[f"{P}ANK"] - lms[f"{P}MMA"]) + 2 * tissue.get(f"{P}ANK", 0.003))
     subject.update({"inter_asis_distance": float(np.linalg.norm(lms["RASI"] - lms["LASI"])),
-                    "marker_diameter": 2 * MARKER_RADIUS, "height": height, "mass": body_mass})
+                    "marker_diameter": DEFAULT_MARKER_DIAMETER, "height": height, "mass": body_mass})
     write_text(inside(out, "subject.json"), json.dumps(subject, indent=1) + "\n")
     # ---- truth.json
     joints = {k: {"origin": o.tolist(), "rotation": R.tolist()} for k, (o, R) in anat.joints_scanner.items()}

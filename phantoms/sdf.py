@@ -19,6 +19,8 @@ from functools import cached_property
 
 import numpy as np
 
+from lowerlimb.geometry import frame_zy, unit
+
 _EPS = 1e-12
 
 
@@ -34,11 +36,6 @@ def _mv(p: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def _norm(p: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ij,ij->i", p, p))
-
-
-def _unit(v) -> np.ndarray:
-    v = np.asarray(v, float)
-    return v / np.linalg.norm(v)
 
 
 class SDF:
@@ -250,7 +247,7 @@ class Slab(SDF):
     normal: np.ndarray
 
     def __call__(self, p):
-        return _mv(p - self.point, _unit(self.normal))
+        return _mv(p - self.point, unit(self.normal))
 
     def bounds(self):
         return np.full(3, -np.inf), np.full(3, np.inf)
@@ -404,21 +401,18 @@ class Transformed(SDF):
 def rotation_from_axes(x=None, y=None, z=None) -> np.ndarray:
     """Right-handed rotation whose columns are unit local axes; give two, the third follows.
 
-    The first given axis is kept exactly, the second is orthogonalised to it.
+    The axis kept exactly is Z if given, else X; the other is orthogonalised
+    to it (z with y is `lowerlimb.geometry.frame_zy`).
     """
     if z is not None and y is not None:
-        Z = _unit(z)
-        Y = _unit(np.asarray(y, float) - (np.dot(y, Z)) * Z)
-        X = np.cross(Y, Z)
-    elif z is not None and x is not None:
-        Z = _unit(z)
-        X = _unit(np.asarray(x, float) - (np.dot(x, Z)) * Z)
+        return frame_zy(z, y)
+    if z is not None and x is not None:
+        Z = unit(z)
+        X = unit(np.asarray(x, float) - (np.dot(x, Z)) * Z)
         Y = np.cross(Z, X)
-    elif y is not None and z is not None:  # pragma: no cover - same as first branch
-        raise AssertionError
     elif x is not None and y is not None:
-        X = _unit(x)
-        Y = _unit(np.asarray(y, float) - (np.dot(y, X)) * X)
+        X = unit(x)
+        Y = unit(np.asarray(y, float) - (np.dot(y, X)) * X)
         Z = np.cross(X, Y)
     else:
         raise ValueError("give two axes")

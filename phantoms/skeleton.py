@@ -44,14 +44,14 @@ from kinematics.multibody.model import Body, Coordinate, Marker, Model
 from kinematics.gait.pig import SegmentPose, joint_angles, pelvis_frame
 from kinematics.gait.soft_tissue import draw_thickness
 from kinematics.gait.subject import SubjectMeasurements
+from lowerlimb.geometry import DEFAULT_MARKER_DIAMETER, DEFAULT_MARKER_RADIUS, frame_zy, unit
 
-__all__ = ["LAB_FROM_BODY", "Site", "PhantomSkeleton", "phantom_skeleton", "pelvis_tissue_thickness", "pelvis_skin_sites", "SIDES", "MARKER_RADIUS",
+__all__ = ["LAB_FROM_BODY", "Site", "PhantomSkeleton", "phantom_skeleton", "pelvis_tissue_thickness", "pelvis_skin_sites", "SIDES",
            "PIG_MARKERS", "EXTRA_MARKERS", "DEVICE_MARKERS"]
 
 #: body frame (X anterior, Y superior, Z right) -> lab frame (X forward, Y left, Z up)
 LAB_FROM_BODY = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 SIDES = ("r", "l")
-MARKER_RADIUS = 0.007  # m, 14 mm markers
 #: Plug-in-Gait lower-body markers (right; left twins start with L)
 PIG_MARKERS = ("ASI", "PSI", "THI", "KNE", "TIB", "ANK", "HEE", "TOE")
 #: optional markers: medial knee and ankle, thigh cluster (wand) markers
@@ -62,14 +62,9 @@ DEVICE_MARKERS = ("TIBM1", "TIBM2", "TIBM3")
 _X, _Y, _Z = np.eye(3)
 
 
-def _unit(v):
-    v = np.asarray(v, float)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 def _ortho(v, z):
     """Unit component of v orthogonal to unit z."""
-    return _unit(v - np.dot(v, z) * z)
+    return unit(v - np.dot(v, z) * z)
 
 
 @dataclass(frozen=True)
@@ -212,9 +207,7 @@ def _knee_law(side: str, rng: np.random.Generator, standing: np.ndarray) -> Corr
 
 
 def _pose_frame(origin, z, y_hint) -> tuple[np.ndarray, np.ndarray]:
-    z = _unit(z)
-    y = _ortho(y_hint, z)
-    return np.asarray(origin, float), np.column_stack([np.cross(y, z), y, z])
+    return np.asarray(origin, float), frame_zy(z, y_hint)
 
 
 def _sdf_normal_body(ph, bone: str, p_body: np.ndarray, h: float = 2e-4) -> np.ndarray:
@@ -223,7 +216,7 @@ def _sdf_normal_body(ph, bone: str, p_body: np.ndarray, h: float = 2e-4) -> np.n
     ps = A[:3, :3] @ p_body + A[:3, 3]
     E = h * np.eye(3)
     g = (ph.sdf(bone, ps + E) - ph.sdf(bone, ps - E)) / (2 * h)
-    return _unit(A[:3, :3].T @ g)
+    return unit(A[:3, :3].T @ g)
 
 
 def pelvis_tissue_thickness(seed: int) -> dict:
@@ -277,7 +270,7 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
     L = LAB_FROM_BODY
     lab = lambda p: L @ np.asarray(p, float)  # noqa: E731
     s_ = ph.params.stature / 1.75
-    r = MARKER_RADIUS
+    r = DEFAULT_MARKER_RADIUS
 
     # ---- anatomical points and axes in the lab at the standing pose (pelvis at its built position)
     plm = bt["pelvis"]["landmarks"]
@@ -289,7 +282,7 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
     skin_lab: dict[str, np.ndarray] = {}
 
     def put(name, body, landmark, normal, t):
-        n = _unit(normal)
+        n = unit(normal)
         skin_lab[name] = landmark + t * n
         sites_lab[name] = landmark + (t + r) * n
         normals[name] = n
@@ -311,12 +304,12 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         H = lab(f["landmarks"]["femoral_head_centre"])
         K = lab(f["landmarks"]["intercondylar_midpoint"])
         A = lab(ta["landmarks"]["talar_dome_centre"])
-        k_ax = _unit(lab(f["axes"]["knee_axis"][1]))
+        k_ax = unit(lab(f["axes"]["knee_axis"][1]))
         k_lat = k_ax if k_ax @ lat > 0 else -k_ax
-        a_ax = _unit(lab(ta["axes"]["ankle_axis"][1]))
+        a_ax = unit(lab(ta["axes"]["ankle_axis"][1]))
         a_lat = a_ax if a_ax @ lat > 0 else -a_ax
         st_p, st_d = ta["axes"]["subtalar_axis"]
-        st_p, st_d = lab(st_p), _unit(lab(st_d))
+        st_p, st_d = lab(st_p), unit(lab(st_d))
         if st_d @ _X < 0:
             st_d = -st_d
         Sub = st_p + np.dot(A - st_p, st_d) * st_d
@@ -331,39 +324,39 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         put(f"{S}ANKM", f"tibia_{s}", on_axis(lab(t["landmarks"][f"{S}MMA"])), -a_lat, tissue["ANKM"])
         hee = lab(ca["landmarks"][f"{S}HEE"])
         toe_b = 0.5 * (lab(ca["landmarks"][f"{S}D1M"]) + lab(ca["landmarks"][f"{S}D5M"]))
-        put(f"{S}HEE", f"calcn_{s}", hee, _unit(hee - toe_b) * np.array([1, 1, 0]), tissue["HEE"])
+        put(f"{S}HEE", f"calcn_{s}", hee, unit(hee - toe_b) * np.array([1, 1, 0]), tissue["HEE"])
         put(f"{S}TOE", f"calcn_{s}", toe_b, _Z, tissue["TOE"])
         # femur frame axes (standing) for wand placement
-        zf = _unit(H - K)
+        zf = unit(H - K)
         yl = _ortho(k_lat, zf)                         # lateral, orthogonal to the femur axis
         left = -k_lat if s == "r" else k_lat
-        xf = _unit(np.cross(_ortho(left, zf), zf))     # anterior
+        xf = unit(np.cross(_ortho(left, zf), zf))     # anterior
         # THI: lower third of the thigh, in the plane of hip, knee and knee axis (Plug-in-Gait placement)
         for name, frac, rad in ((f"{S}THI", 0.33, 0.062),):
             base = K + frac * (H - K)
             sites_lab[name] = base + (rad * s_ + r) * yl
             normals[name], body_of[name] = yl, f"femur_{s}"
         # thigh cluster markers (optional wands): proximal antero-lateral, distal anterior
-        for name, frac, d in ((f"{S}THIP", 0.62, _unit(0.6 * xf + 0.8 * yl)), (f"{S}THIA", 0.30, _unit(xf + 0.2 * yl))):
+        for name, frac, d in ((f"{S}THIP", 0.62, unit(0.6 * xf + 0.8 * yl)), (f"{S}THIA", 0.30, unit(xf + 0.2 * yl))):
             base = K + frac * (H - K)
             sites_lab[name] = base + (0.068 * s_ + r) * d
             normals[name], body_of[name] = d, f"femur_{s}"
         # TIB: lower third of the shank, in the plane through K and the ANK site containing the knee axis
-        zt = _unit(K - A)
+        zt = unit(K - A)
         ank = sites_lab[f"{S}ANK"]
-        npl = _unit(np.cross(ank - K, k_lat))
+        npl = unit(np.cross(ank - K, k_lat))
         base = A + 0.33 * (K - A)
         base = base - np.dot(base - K, npl) * npl
-        lat_pl = _unit(k_lat - np.dot(k_lat, npl) * npl - np.dot(k_lat, zt) * zt)
+        lat_pl = unit(k_lat - np.dot(k_lat, npl) * npl - np.dot(k_lat, zt) * zt)
         sites_lab[f"{S}TIB"] = base + (0.048 * s_ + r) * lat_pl
         normals[f"{S}TIB"], body_of[f"{S}TIB"] = lat_pl, f"tibia_{s}"
         # validation device: bow on a tibia-fixed plate (TIBM1, TIBM2) and a distal medial skin marker (TIBM3)
-        xt = _unit(np.cross(_ortho(left, zt), zt))      # anterior
+        xt = unit(np.cross(_ortho(left, zt), zt))      # anterior
         med = -lat_pl
         for name, frac, d in ((f"{S}TIBM1", 0.62, 0.085 * xt + 0.025 * med), (f"{S}TIBM2", 0.42, 0.085 * xt + 0.040 * med),
                               (f"{S}TIBM3", 0.16, 0.022 * xt + 0.028 * med)):
             sites_lab[name] = A + frac * (K - A) + d * s_
-            normals[name], body_of[name] = _unit(d), f"tibia_{s}"
+            normals[name], body_of[name] = unit(d), f"tibia_{s}"
 
     # ---- anatomical frames (standing, lab)
     ps = 0.5 * (sites_lab["RPSI"] + sites_lab["LPSI"])
@@ -382,8 +375,8 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         tors[s] = float(np.arctan2(-xa[1], xa[0]))  # x' = cos t x - sin t y (kinematics.gait.pig.tibia_frame)
         S = s.upper()
         toe, hee = sites_lab[f"{S}TOE"], sites_lab[f"{S}HEE"]
-        zfo = _unit(hee - toe)
-        xfo = _unit(np.cross(Rtt[:, 1], zfo))
+        zfo = unit(hee - toe)
+        xfo = unit(np.cross(Rtt[:, 1], zfo))
         frames[f"foot_{s}"] = (toe, np.column_stack([xfo, np.cross(zfo, xfo), zfo]))
 
     # ---- bodies: pelvis, femur, tibia frames = anatomical; talus/calcn axes = torsioned tibia axes
@@ -481,7 +474,7 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         left_leg_length=leg["l"], right_leg_length=leg["r"],
         left_knee_width=dist("LKNE", "LKNEM"), right_knee_width=dist("RKNE", "RKNEM"),
         left_ankle_width=dist("LANK", "LANKM"), right_ankle_width=dist("RANK", "RANKM"),
-        inter_asis_distance=dist("RASI", "LASI"), marker_diameter=2 * r,
+        inter_asis_distance=dist("RASI", "LASI"), marker_diameter=DEFAULT_MARKER_DIAMETER,
         height=float(ph.params.stature), mass=float(round(70.0 * s_**2, 1)),
         left_tibial_torsion=tors["l"], right_tibial_torsion=tors["r"], source=f"phantom seed {ph.seed}")
     return PhantomSkeleton(model, q0, sites, sk_normals, centres, frame_offsets, laws, subject, tors, seed,

@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from personalize.frames import closest_on_line, frame_yz, frame_zy, joints_from_landmarks
+from lowerlimb.geometry import frame_yz, frame_zy
+from personalize.frames import closest_on_line, joints_from_landmarks
 from personalize.landmarks.common import Axis, BoneLandmarks, Landmark, LandmarkSet
 
 

@@ -4,8 +4,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lowerlimb.errors import InputError
-from lowerlimb.geometry import (DEFAULT_MARKER_DIAMETER, frame_yz, frame_zy, kabsch, kabsch_rotation, marker_radius,
-                                skew, unit, vertex_normals)
+from lowerlimb.geometry import (DEFAULT_MARKER_DIAMETER, DEFAULT_MARKER_RADIUS, frame_yz, frame_zy, kabsch, kabsch_rotation,
+                                marker_radius, orient, skew, unit, vertex_normals)
 
 
 def test_unit_single_and_batched():
@@ -92,5 +92,11 @@ def test_vertex_normals_of_octahedron_point_outward():
 
 
 def test_marker_radius_is_half_the_stated_diameter():
-    assert marker_radius() == 0.007 == DEFAULT_MARKER_DIAMETER / 2
+    assert marker_radius() == 0.007 == DEFAULT_MARKER_DIAMETER / 2 == DEFAULT_MARKER_RADIUS
     assert marker_radius(0.025) == 0.0125
+
+
+def test_orient_flips_against_reference_only():
+    np.testing.assert_array_equal(orient(np.array([1.0, -2, 0]), [0, 1, 0]), [-1, 2, 0])
+    np.testing.assert_array_equal(orient(np.array([1.0, 2, 0]), [0, 1, 0]), [1, 2, 0])
+    np.testing.assert_array_equal(orient(np.array([1.0, 0, 0]), [0, 1, 0]), [1, 0, 0])   # orthogonal: kept

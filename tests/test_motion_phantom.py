@@ -186,7 +186,8 @@ def test_write_trials(tmp_path, phantom):
 
 def test_pelvis_markers_sit_along_the_bone_normal_at_the_subjects_tissue_thickness(world, phantom):
     """ASIS/PSIS marker centre = landmark + (tissue + marker radius) n, n the pelvis SDF's outward normal."""
-    from phantoms.skeleton import LAB_FROM_BODY, MARKER_RADIUS, phantom_skeleton
+    from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
+    from phantoms.skeleton import LAB_FROM_BODY, phantom_skeleton
 
     sk, _, _ = world
     st = sk.state(sk.standing_q)
@@ -202,7 +203,7 @@ def test_pelvis_markers_sit_along_the_bone_normal_at_the_subjects_tissue_thickne
                       for e in np.eye(3)])
         nrm = LAB_FROM_BODY @ (A[:3, :3].T @ g) / np.linalg.norm(g)
         assert abs(nrm[0]) < np.cos(np.radians(3.0))   # not the lab forward axis: tilted ~12 deg on these phantoms
-        expect.append(LAB_FROM_BODY @ p_body + (sk.tissue_thickness[n[1:]] + MARKER_RADIUS) * nrm)
+        expect.append(LAB_FROM_BODY @ p_body + (sk.tissue_thickness[n[1:]] + DEFAULT_MARKER_RADIUS) * nrm)
     # the standing pose moves the pelvis rigidly: fit the expected sites + both hip centres onto the model's
     c = sk.centres_lab(st)
     P = np.array(expect + [LAB_FROM_BODY @ bt[f"femur_{s}"]["landmarks"]["femoral_head_centre"] for s in "rl"])

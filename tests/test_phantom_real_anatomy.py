@@ -169,7 +169,7 @@ def _bone_distance(anat, label, tm):
     ("opensim", "y-up", "+x", "adult", "both"),
 ])
 def test_marker_set_lab_and_tissue_written_as_truth(icl, tmp_path, ms_name, lab, walk, build, fmt):
-    from phantoms.marker_placement import MARKER_RADIUS
+    from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
 
     out, truth = _write(tmp_path, icl, ms_name, marker_set=ms_name, lab=lab, walk=walk, build=build,
                         trial_format=fmt, gait_trials=1)
@@ -201,7 +201,7 @@ def test_marker_set_lab_and_tissue_written_as_truth(icl, tmp_path, ms_name, lab,
             continue
         on_bone, off = _bone_distance(icl, k, tm)
         assert on_bone < 1e-9
-        assert off == pytest.approx(tm["thickness_m"] + MARKER_RADIUS, abs=1e-9)
+        assert off == pytest.approx(tm["thickness_m"] + DEFAULT_MARKER_RADIUS, abs=1e-9)
         assert tm["palpation_error_m"] < 0.06
     assert truth["tissue"]["build"] == build
 

@@ -11,7 +11,8 @@ from personalize.io import LabelVolume, read_label_map, read_label_volume, read_
 from personalize.skin import MAX_THICKNESS, POSTURE_SD, measure_skin_thickness
 from phantoms import make_phantom
 from phantoms.imaging import SkinField, label_volume, write_label_nifti
-from phantoms.skeleton import MARKER_RADIUS, pelvis_skin_sites, phantom_skeleton
+from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
+from phantoms.skeleton import pelvis_skin_sites, phantom_skeleton
 
 MM = np.diag([1e-3, 1e-3, 1e-3, 1.0])
 
@@ -41,7 +42,7 @@ def test_skin_passes_at_the_drawn_thickness(pelvis_with_skin):
     d_marker = np.linalg.norm(site.offset - sk.sites["RASI"].offset)
     p_r, n_r, t_r = field.sites["RPSI"]
     p_a, n_a, t_a = field.sites["RASI"]
-    r = MARKER_RADIUS
+    r = DEFAULT_MARKER_RADIUS
     assert d_marker == pytest.approx(np.linalg.norm((p_r + (t_r + r) * n_r) - (p_a + (t_a + r) * n_a)), abs=1e-9)
     assert np.linalg.norm(np.asarray(plm["RASI"])) > 0
 

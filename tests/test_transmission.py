@@ -9,7 +9,8 @@ from kin_helpers import leg_model
 from kinematics.algorithms.fk import frame_jacobian, point_jacobian
 from kinematics.multibody.joints import Transform
 from kinematics.mechanisms.transmission import (AppliedLoad, FrameState, JointElement, MassElement, RigidLink,
-                                     TransmissionChain, skew)
+                                     TransmissionChain)
+from lowerlimb.geometry import skew
 
 
 @pytest.fixture(scope="module")

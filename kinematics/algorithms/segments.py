@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lowerlimb.errors import FitError, InputError
+from lowerlimb.geometry import kabsch_rotation
 
 __all__ = ["RigidPose", "rigid_pose", "cluster_reference"]
 
@@ -94,13 +95,7 @@ def rigid_pose(reference: np.ndarray, measured: np.ndarray, weights: np.ndarray 
     H = np.einsum("fm,fmi,fmj->fij", W, ac, bc)
     good = (n >= 3) & np.all(np.isfinite(H), axis=(1, 2))
     H = np.where(good[:, None, None], H, np.eye(3))
-    U, S, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.transpose(0, 2, 1) @ U.transpose(0, 2, 1)))
-    D = np.zeros((len(d), 3, 3))
-    D[:, 0, 0] = 1.0
-    D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = Vt.transpose(0, 2, 1) @ D @ U.transpose(0, 2, 1)
+    R, _ = kabsch_rotation(H)
     t = b_bar - np.einsum("fij,fj->fi", R, a_bar)
     # Collinear clusters leave the rotation about their line undetermined.
     cov_a = np.einsum("fm,fmi,fmj->fij", W, ac, ac) / np.where(sw > 0, sw, 1.0)[..., None]

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lowerlimb.errors import FitError, InputError
+from lowerlimb.geometry import marker_radius
 from kinematics.algorithms.functional import CentreEstimate, centre_transformation
 from kinematics.io.markers import MarkerTrial
 from kinematics.gait.pig import SegmentPose, unit_vectors
@@ -169,7 +170,7 @@ def calibrate(subject: SubjectMeasurements, static: MarkerTrial | None = None) -
     malleolar line ANK-ANKM.  Without them φ = -tibial torsion (measured,
     Plug-in-Gait convention) and β = 0 (the seed's assumption).
     """
-    r = 0.5 * subject.marker_diameter
+    r = marker_radius(subject.marker_diameter)
     dk = {s: 0.5 * subject.side(s)["knee_width"] + r for s in "RL"}
     da = {s: 0.5 * subject.side(s)["ankle_width"] + r for s in "RL"}
     beta = {"R": 0.0, "L": 0.0}

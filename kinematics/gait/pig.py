@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lowerlimb.errors import InputError
+from lowerlimb.geometry import marker_radius
 from kinematics.io.markers import MarkerTrial
 from kinematics.gait.subject import SubjectMeasurements
 
@@ -141,7 +142,7 @@ def davis_hip_offset(subject: SubjectMeasurements, side: str, inter_asis: float)
         at = 0.1288 * leg - 0.04856
     c = 0.115 * subject.mean_leg_length - 0.0153
     a = 0.5 * inter_asis
-    r = 0.5 * subject.marker_diameter
+    r = marker_radius(subject.marker_diameter)
     x = c * np.cos(DAVIS_THETA) * np.sin(DAVIS_BETA) - (at + r) * np.cos(DAVIS_BETA)
     y = (a - c * np.sin(DAVIS_THETA)) * (1.0 if s == "L" else -1.0)
     z = -c * np.cos(DAVIS_THETA) * np.cos(DAVIS_BETA) - (at + r) * np.sin(DAVIS_BETA)
@@ -337,7 +338,7 @@ def leg_chain(trial: MarkerTrial, subject: SubjectMeasurements, hips: dict) -> t
         from `chord_joint_centre` (half the joint width plus the marker radius)
     """
     M = trial.marker
-    r = 0.5 * subject.marker_diameter
+    r = marker_radius(subject.marker_diameter)
     segs, centres = {}, {}
     for s, sfx in (("R", "_r"), ("L", "_l")):
         hip = hips[s]
@@ -355,7 +356,7 @@ def chord_centre_jacobians(trial: MarkerTrial, subject: SubjectMeasurements, sid
                            knee: np.ndarray, h: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
     """J_k = ∂knee/∂hip and J_a = ∂ankle/∂knee (F, 3, 3) of the chord functions (central differences, step `h` m)."""
     m = subject.side(side)
-    r = 0.5 * subject.marker_diameter
+    r = marker_radius(subject.marker_diameter)
     dk = 0.5 * m["knee_width"] + r
     da = 0.5 * m["ankle_width"] + r
     thi, kne, tib, ank = (trial.marker(f"{side}{n}") for n in ("THI", "KNE", "TIB", "ANK"))

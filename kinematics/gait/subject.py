@@ -15,11 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from lowerlimb.errors import InputError
+from lowerlimb.geometry import DEFAULT_MARKER_DIAMETER
 from kinematics.io.markers import MarkerTrial
 
 __all__ = ["SubjectMeasurements", "read_subject", "read_vsk", "validate_static"]
-
-DEFAULT_MARKER_DIAMETER = 0.014  # m, Vicon's default 14 mm marker
 
 
 @dataclass(frozen=True)

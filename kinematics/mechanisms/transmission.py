@@ -37,7 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lowerlimb.errors import InputError
-from kinematics.multibody.joints import Joint, Transform, skew
+from kinematics.multibody.joints import Joint, Transform
+from lowerlimb.geometry import skew
 from kinematics.multibody.model import Body, Model
 
 __all__ = [

@@ -32,24 +32,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kinematics.multibody.functions import Constant, Function, Linear, read_only
+from lowerlimb.geometry import skew
 
 __all__ = [
     "Transform", "TransformAxis", "Joint", "CustomJoint", "SwingJoint", "ExpMapSpherical",
     "weld", "revolute", "prismatic", "universal", "spherical", "free",
-    "rotation_about", "euler_to_matrix", "matrix_to_euler_xyz", "skew", "exp_so3", "left_jacobian_so3",
+    "rotation_about", "euler_to_matrix", "matrix_to_euler_xyz", "exp_so3", "left_jacobian_so3",
     "left_jacobian_inverse_so3", "is_identity_function",
 ]
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices [v]x, shape (..., 3, 3)."""
-    v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack([
-        np.stack([z, -v[..., 2], v[..., 1]], -1),
-        np.stack([v[..., 2], z, -v[..., 0]], -1),
-        np.stack([-v[..., 1], v[..., 0], z], -1),
-    ], -2)
 
 
 def rotation_about(axis: np.ndarray, angle) -> np.ndarray:

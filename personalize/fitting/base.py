@@ -125,12 +125,6 @@ def check_inputs(points, normals=None, weights=None, *, n_params: int, model: st
     return frame.forward(P), U, w, frame
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrix ``[v]x`` with ``[v]x @ u == np.cross(v, u)``."""
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
 def orthonormal_basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors ``u, v`` completing unit ``a`` to a right-handed frame."""
     i = int(np.argmin(np.abs(a)))

@@ -40,7 +40,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .base import DegenerateError, NotConvergedError, check_inputs, skew, surface_likeness
+from lowerlimb.geometry import skew
+
+from .base import DegenerateError, NotConvergedError, check_inputs, surface_likeness
 from .robust import em_lm
 
 __all__ = ["SuperquadricFit", "fit_superquadric", "sq_radial_distance"]
