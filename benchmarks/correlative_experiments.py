@@ -51,7 +51,8 @@ from kinematics.multibody.coupling import LinearInequalities
 from lowerlimb.errors import FitError, InputError
 from kinematics.algorithms.fk import marker_jacobian
 from kinematics.multibody.functions import NaturalCubicSpline
-from kinematics.algorithms.ik import IKResult, coordinate_map, solve_ik
+from kinematics.algorithms.coordinate_map import coordinate_map
+from kinematics.algorithms.ik import IKResult, solve_ik
 from kinematics.io.markers import MarkerTrial
 from kinematics.multibody.model import GROUND, Model
 
@@ -556,7 +557,7 @@ def undetermined_coordinates(model: Model, markers: Sequence[str], q=None, tol: 
     """Coordinates that `markers` do not determine at pose `q` (default: the default pose).
 
     With ``J = (dx_m/dq) (dq/dz)`` the (3M, n_z) Jacobian of the markers with
-    respect to the free parameters z of `kinematics.algorithms.ik.coordinate_map`, the
+    respect to the free parameters z of `kinematics.algorithms.coordinate_map.coordinate_map`, the
     directions ``dz`` with ``|J dz| <= tol sigma_max |dz|`` move no marker;
     the coordinates those directions move (``|dq| > 1e-6``) are returned
     (empty: IK on `markers` is determined, as `IKResult.determined` checks per frame).

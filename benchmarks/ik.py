@@ -56,7 +56,8 @@ def main(argv=None) -> int:
     except ImportError:
         print("skipped: the opensim package is not installed")
         return 0
-    from kinematics.algorithms.ik import read_ik_setup, solve_ik
+    from kinematics.algorithms.ik import solve_ik
+    from kinematics.io.ik_setup import read_ik_setup
     from kinematics.io.opensim_io import load_osim, opensim_inverse_kinematics
     from kinematics.io.storage import read_trc
 

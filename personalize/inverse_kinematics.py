@@ -134,7 +134,8 @@ def trial_inverse_kinematics(model_path: str | os.PathLike, trial_path: str | os
         it starts, setup tasks naming absent coordinates, a trial without any
         marker of the model or in the wrong unit (`check_trial_scale`).
     """
-    from kinematics.algorithms.ik import check_trial_scale, read_ik_setup, solve_ik
+    from kinematics.algorithms.ik import check_trial_scale, solve_ik
+    from kinematics.io.ik_setup import read_ik_setup
     from kinematics.io.opensim_io import load_osim
     from kinematics.io.storage import read_trc
 

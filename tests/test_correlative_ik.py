@@ -12,7 +12,7 @@ from correlative_experiments import (
 )
 from kinematics.algorithms.fk import marker_positions
 from lowerlimb.errors import FitError, InputError
-from kinematics.algorithms.ik import coordinate_map
+from kinematics.algorithms.coordinate_map import coordinate_map
 from phantoms import make_phantom
 from phantoms.motion import make_trials
 

@@ -10,7 +10,7 @@ from kinematics.mechanisms.dynamics import (generalized_forces, generalized_grav
                                  opensim_inverse_dynamics, reduce_generalized_forces)
 from kinematics.algorithms.fk import com_jacobian, point_jacobian
 from kinematics.multibody.functions import SimmSpline
-from kinematics.algorithms.ik import coordinate_map
+from kinematics.algorithms.coordinate_map import coordinate_map
 from kinematics.io.opensim_io import load_osim, to_opensim
 from kinematics.mechanisms.transmission import AppliedLoad, TransmissionChain
 

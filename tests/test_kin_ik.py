@@ -9,8 +9,10 @@ from kinematics.multibody.coupling import CoordinateCoupler, LinearCoupling, Lin
 from lowerlimb.errors import InputError
 from kinematics.algorithms.fk import marker_positions
 from kinematics.multibody.functions import SimmSpline
-from kinematics.algorithms.ik import (CoordinateTask, com_task, coordinate_map, marker_task, orientation_task, read_ik_setup,
-                           solve_ik, solve_pose)
+from kinematics.algorithms.coordinate_map import coordinate_map
+from kinematics.algorithms.ik import solve_ik, solve_pose
+from kinematics.algorithms.tasks import com_task, marker_task, orientation_task
+from kinematics.io.ik_setup import CoordinateTask, read_ik_setup
 from kinematics.io.markers import MarkerTrial
 from kinematics.multibody.model import Coordinate
 

@@ -108,7 +108,7 @@ def reduce_generalized_forces(dq_dz, Q) -> np.ndarray:
     ----------
     dq_dz : (N, n_q, n_z) or (n_q, n_z)
         Jacobian of the parametrisation q = q(z), e.g.
-        ``kinematics.algorithms.ik.coordinate_map(model, limits='none', locked=False).jacobian(q)`` for couplers and
+        ``kinematics.algorithms.coordinate_map.coordinate_map(model, limits='none', locked=False).jacobian(q)`` for couplers and
         linear couplings, or `kinematics.algorithms.loops.LoopSolution.dependency` for a closed loop.
     Q : (N, n_q) or (n_q,)
     """
