@@ -1,6 +1,6 @@
 """Cache the per-leg MRI-only and motion-only hip estimates of phantom subjects (fusion calibration data).
 
-For each phantom subject drawn like ``personalize validate`` (`personalize.evaluation.validate.draw_subjects`
+For each phantom subject drawn like ``personalize validate`` (`personalize.evaluation.phantom_set.draw_subjects`
 with a TRAINING master seed, disjoint from the validation seeds) this runs the pipeline
 only up to the joint estimates (surfaces, landmarks, pelvis registration, SCoRE/SARA;
 no model, no IK) and stores per subject, in the static-trial lab frame (m, m²):
@@ -104,7 +104,7 @@ def main(argv=None):
     ap.add_argument("--folders", type=Path, default=None,
                     help="cache existing phantom subject folders (e.g. a validation run's subjects/) instead of drawing")
     a = ap.parse_args(argv)
-    from personalize.evaluation.validate import SPEC, draw_subjects, ensure_phantom_subject
+    from personalize.evaluation.phantom_set import SPEC, draw_subjects, ensure_phantom_subject
 
     a.out.mkdir(parents=True, exist_ok=True)
     if a.folders is not None:

@@ -1,6 +1,6 @@
 """Calibration of the knee and ankle error models: the knee-law intercept and the knee/ankle centre covariances.
 
-On TRAINING phantom subjects (``personalize.evaluation.validate.draw_subjects`` with the
+On TRAINING phantom subjects (``personalize.evaluation.phantom_set.draw_subjects`` with the
 training seed 1000; validation seeds are never used): run the pipeline
 (`personalize.pipeline.run_subject`), then IK of the gait and crouch trials on
 the personalised model with free knee translations, fit the flexion law
@@ -99,7 +99,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "knee_ankle_calibration.json")
     a = ap.parse_args(argv)
     from lowerlimb.atomic import write_text
-    from personalize.evaluation.validate import draw_subjects, ensure_phantom_subject
+    from personalize.evaluation.phantom_set import draw_subjects, ensure_phantom_subject
 
     specs = draw_subjects(a.subjects, 1000)
     out, errs, sds = {}, [], []

@@ -485,13 +485,13 @@ def validation_subjects(n: int, seed: int = 2026) -> dict:
     """Both legs of the `personalize validate` subjects (random anatomy, voxel size, segmentation noise).
 
     The subjects are those of ``personalize validate --subjects n --seed seed``
-    (`personalize.evaluation.validate.draw_subjects`), leg bones only; each leg is rasterised at
+    (`personalize.evaluation.phantom_set.draw_subjects`), leg bones only; each leg is rasterised at
     its subject's anisotropic voxel with its noise.  Printed: per-leg errors, and the
     95th percentile and maximum of each against twice the 1 mm limits (the issue's
     coarse-imaging rule; these voxels reach 1 x 1 x 3 mm, coarser than 0.5 x 0.5 x 2).
     """
     from personalize.landmarks.evaluate import TOLERANCES, phantom_case
-    from personalize.evaluation.validate import draw_subjects
+    from personalize.evaluation.phantom_set import draw_subjects
 
     rows = []
     for spec in draw_subjects(n, seed):

@@ -8,11 +8,17 @@ On a terminal a rich bar is redrawn in place; when stderr is not a terminal
 The estimate assumes the remaining steps take as long on average as the
 finished ones; the step count is an estimate too when the number of steps is
 only known as the work goes (``~M``), and grows if the work outruns it.
+
+`BatchProgress` shows a batch the same way, one subject at a time::
+
+    batch [2/5] 0:41 elapsed, ~1:02 left  s2: ok; 2 ok, 0 error, 0 skipped
+
+Both draw on a rich Console the command gives them (stderr); they are the only
+library objects that write to the terminal, and only when asked to.
 """
 from __future__ import annotations
 
 import time
-from typing import Callable
 
 
 def _clock(seconds: float) -> str:
@@ -89,6 +95,39 @@ class StepProgress:
                                markup=False, highlight=False)
 
 
-def callback(progress: StepProgress | None) -> Callable[[str], None]:
-    """A ``progress(message)`` callable for library functions (no-op for None)."""
-    return progress if progress is not None else (lambda m: None)
+class BatchProgress:
+    """Subjects done of N, elapsed, estimate: a rich bar on a terminal, one plain line per subject otherwise."""
+
+    def __init__(self, console, enabled: bool, total: int, skipped: int):
+        self.console, self.enabled, self.total, self.done = console, enabled, total, 0
+        self.t0 = time.perf_counter()
+        self.bar = None
+        if enabled and console.is_terminal:
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                       TimeRemainingColumn)
+
+            self.bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                                TimeRemainingColumn(), TextColumn("{task.fields[status]}"), console=console,
+                                transient=False)
+            self.task = self.bar.add_task("subjects", total=total, status=f"{skipped} skipped")
+
+    def __enter__(self):
+        if self.bar is not None:
+            self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.__exit__(*exc)
+
+    def advance(self, subject: str, r, status: str) -> None:
+        """One subject done: `r` is its `personalize.cohort.SubjectResult`, `status` the running counts."""
+        self.done += 1
+        if self.bar is not None:
+            self.bar.update(self.task, advance=1, description=subject, status=status)
+        elif self.enabled:
+            el = time.perf_counter() - self.t0
+            left = el / self.done * (self.total - self.done)
+            self.console.print(f"batch [{self.done}/{self.total}] {_clock(el)} elapsed, ~{_clock(left)} left  "
+                               f"{subject}: {r.status}{(' (' + r.error + ')') if r.error else ''}; {status}",
+                               markup=False, highlight=False, soft_wrap=True)

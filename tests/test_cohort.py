@@ -11,7 +11,8 @@ import pytest
 
 from lowerlimb.errors import InputError
 from personalize.cli import main
-from personalize.cohort import Subject, is_complete, read_batch_csv, read_manifest, run_batch
+from personalize.cohort import Subject, read_batch_csv, read_manifest, run_batch
+from personalize.cohort.records import is_complete
 
 JOBS = "cohort_jobs"  # tests/cohort_jobs.py, importable by the workers (pytest puts tests/ on sys.path)
 
@@ -32,7 +33,7 @@ def phantom_subject(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def cluster():
     """One 2-worker LocalCluster shared by the module's tests (start-up costs seconds)."""
-    from personalize.cohort import dask_client
+    from personalize.cohort.runner import dask_client
 
     with dask_client(None, workers=2) as client:
         yield client

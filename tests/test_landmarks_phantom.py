@@ -206,7 +206,7 @@ def test_flat_tibial_plateau_under_the_femur_is_not_a_cut():
     """
     from personalize.landmarks.common import as_surface
     from personalize.landmarks.tibia import detect_tibia
-    from personalize.evaluation.validate import draw_subjects
+    from personalize.evaluation.phantom_set import draw_subjects
 
     spec = draw_subjects(20, 2026)[11]
     case = phantom_case(spec.seed, voxel=tuple(v * 1e-3 for v in spec.voxel_mm), noise=spec.segmentation_noise,

@@ -7,7 +7,7 @@ from kinematics.io.markers import MarkerTrial
 
 
 def test_realistic_set_covers_every_level(shared_data):
-    from personalize.evaluation.validate import draw_realistic_subjects
+    from personalize.evaluation.realistic_set import draw_realistic_subjects
 
     specs = draw_realistic_subjects(20, 0, shared_data)
     assert len(specs) == 20
@@ -25,7 +25,7 @@ def test_realistic_set_covers_every_level(shared_data):
 
 def test_coverage_metric_counts_truth_inside_the_95_ellipsoid(tmp_path):
     from kinematics.io.storage import write_trc
-    from personalize.evaluation.validate import coverage_metrics
+    from personalize.evaluation.realistic_set import coverage_metrics
 
     (tmp_path / "truth").mkdir()
     t = np.array([[[0.1, 0.2, 0.9]]])

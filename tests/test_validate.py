@@ -1,4 +1,4 @@
-"""personalize.evaluation.validate: random phantom cohorts, metrics.csv and the distribution report."""
+"""personalize.evaluation (phantom_set, metrics, validate) and its report: random phantom cohorts, metrics.csv, report.html."""
 from __future__ import annotations
 
 import json
@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from lowerlimb.errors import InputError
-from personalize.evaluation.validate import (DEFAULT_RANGES, SURFACE_JOB, draw_subjects, flatten_metrics, fusion_statistics, metric_groups,
-                                  metric_statistics, read_metrics, run_validation)
+from personalize.evaluation.metrics import flatten_metrics, fusion_statistics, metric_groups, metric_statistics, read_metrics
+from personalize.evaluation.phantom_set import DEFAULT_RANGES, SURFACE_JOB, draw_subjects
+from personalize.evaluation.validate import run_validation
 
 SMALL = {"inplane_mm": (2.5, 3.0), "slice_mm": (3.0, 3.5)}  # coarse voxels keep the test fast
 
@@ -114,7 +115,7 @@ def test_validate_command_refuses_bad_options(tmp_path, capsys):
 
 def test_report_of_pipeline_shaped_metrics(tmp_path):
     """Headline metrics (errors per source, IK RMS) are tabled and plotted; estimates only go to metrics.csv."""
-    from personalize.evaluation.validate import validation_report
+    from personalize.presentation.validation_report import validation_report
 
     rng = np.random.default_rng(0)
     rows = []

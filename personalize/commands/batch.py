@@ -35,7 +35,7 @@ def batch(
 
     from lowerlimb.errors import InputError
 
-    from ..cohort import print_batch, run_batch
+    from personalize.cohort import run_batch
 
     if not (0 <= retries <= 10):
         raise InputError("--retries", f"{retries} is outside 0-10")
@@ -45,6 +45,23 @@ def batch(
     print_batch(result, console)
     if result.counts["error"]:
         raise typer.Exit(1)
+
+
+def print_batch(result, console) -> None:
+    """Print a `personalize.cohort.BatchResult`'s error rows and counts with rich (also used by ``validate``)."""
+    from rich.table import Table
+
+    errors = [r for r in result.results if r.status == "error"]
+    if errors:
+        t = Table(title="Subjects that failed")
+        t.add_column("subject")
+        t.add_column("error", overflow="fold")
+        for r in errors:
+            t.add_row(r.subject, r.error)
+        console.print(t)
+    c = result.counts
+    console.print(f"{c['ok']} ok, {c['error']} error, {c['skipped']} skipped (already complete); "
+                  f"table in {result.csv}")
 
 
 def register(app: typer.Typer) -> None:

@@ -6,6 +6,27 @@ from pathlib import Path
 import typer
 
 
+def render_summary(summary: dict, console) -> None:
+    """Print the demo's error tables (`personalize.evaluation.demo.run_demo`'s summary) with rich."""
+    from rich.table import Table
+
+    t = Table(title=f"Bone surfaces from a {summary['voxel_mm'][0]:g} mm label volume vs exact phantom surfaces")
+    for col in ("bone", "mean |d| (mm)", "max |d| (mm)", "volume error (%)"):
+        t.add_column(col, justify="right" if col != "bone" else "left")
+    for b, r in summary["surfaces"].items():
+        t.add_row(b, f"{r['mean_abs_distance_mm']:.3f}", f"{r['max_distance_mm']:.2f}", f"{r['volume_error_pct']:+.2f}")
+    console.print(t)
+    p = summary.get("pipeline")
+    if p:
+        e = Table(title="Joint estimates vs phantom truth (worst side; static-trial lab frame)")
+        for col in ("quantity", "MRI only", "motion only", "fused"):
+            e.add_column(col, justify="right" if col != "quantity" else "left")
+        for k, v in p["errors"].items():
+            e.add_row(k, *(f"{v[s]:.2f}" for s in ("mri", "motion", "fused")))
+        console.print(e)
+        console.print(f"personalised model: IK marker RMS {p['ik_rms_mm']:.2f} mm (worst trial mean)")
+
+
 def register(app: typer.Typer) -> None:
     @app.command()
     def demo(
@@ -19,8 +40,8 @@ def register(app: typer.Typer) -> None:
         """Run the pipeline on a built-in phantom subject and print its errors against the known truth."""
         from rich.console import Console
 
-        from personalize.evaluation.demo import render_summary, run_demo
-        from ..progress import StepProgress
+        from personalize.evaluation.demo import run_demo
+        from personalize.progress import StepProgress
 
         console = Console()
         # the phantom's 17 labels rasterised and 16 bones meshed, 16 surfaces extracted; the pipeline adds the motion

@@ -37,13 +37,11 @@ def validate(
     """Run the pipeline on random phantom subjects and summarise its errors against truth."""
     from rich.console import Console
 
-    from ..cohort import print_batch
-    from personalize.evaluation.validate import run_validation
+    from personalize.commands.batch import print_batch
+    from personalize.evaluation.validate import run_realistic_validation, run_validation
 
     console = Console(stderr=True)
     if realistic:
-        from personalize.evaluation.validate import run_realistic_validation
-
         res = run_realistic_validation(subjects, seed, out, data_root=data, scheduler=scheduler or None,
                                        workers=workers, job=job or None, console=console)
         print_batch(res.batch, console)

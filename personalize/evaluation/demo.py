@@ -18,29 +18,25 @@ import json
 from pathlib import Path
 from typing import Callable
 
-
 from lowerlimb.atomic import inside, staged_dir, write_text
 
 #: bones whose surfaces the demo measures (the ones the accuracy targets name)
 DEMO_SURFACE_BONES = ("pelvis", "femur_r", "tibia_r", "femur_l", "tibia_l")
 
 
-def surface_errors(ph, surfaces: dict, bones=DEMO_SURFACE_BONES) -> dict:
-    """Mean/max surface distance (mm) and volume error (%) of extracted surfaces against the phantom's exact ones."""
+def surface_error(extracted, exact) -> dict:
+    """Mean/max distance (mm) and volume error (%) of an extracted bone (`personalize.surfaces`) vs its exact mesh (m)."""
     from personalize.surfaces import surface_distance
 
-    rows = {}
-    for b in bones:
-        if b not in surfaces:
-            continue
-        exact = ph.mesh(b)
-        d = surface_distance(surfaces[b].mesh, exact, n=20000, seed=0)
-        rows[b] = {
-            "mean_abs_distance_mm": d["mean"] * 1e3,
-            "max_distance_mm": d["max"] * 1e3,
-            "volume_error_pct": 100.0 * (surfaces[b].volume - exact.volume) / exact.volume,
-        }
-    return rows
+    d = surface_distance(extracted.mesh, exact, n=20000, seed=0)
+    volume = abs(exact.volume)
+    return {"mean_abs_distance_mm": d["mean"] * 1e3, "max_distance_mm": d["max"] * 1e3,
+            "volume_error_pct": 100.0 * (extracted.volume - volume) / volume}
+
+
+def surface_errors(ph, surfaces: dict, bones=DEMO_SURFACE_BONES) -> dict:
+    """`surface_error` of each extracted bone of `bones` against the phantom's exact surface."""
+    return {b: surface_error(surfaces[b], ph.mesh(b)) for b in bones if b in surfaces}
 
 
 def run_demo(out: str | Path, seed: int = 0, voxel_mm: float = 1.0,
@@ -104,24 +100,3 @@ def _run_demo(out: Path, *, ph_seed: int, voxel_mm: float, say, pipeline: bool, 
                                "frame": res["frame"], "ik": res["ik"], "sources": res["sources"]}
     write_text(inside(out, "demo.json"), json.dumps(summary, indent=1) + "\n")
     return summary
-
-
-def render_summary(summary: dict, console) -> None:
-    """Print the demo's error tables with rich."""
-    from rich.table import Table
-
-    t = Table(title=f"Bone surfaces from a {summary['voxel_mm'][0]:g} mm label volume vs exact phantom surfaces")
-    for col in ("bone", "mean |d| (mm)", "max |d| (mm)", "volume error (%)"):
-        t.add_column(col, justify="right" if col != "bone" else "left")
-    for b, r in summary["surfaces"].items():
-        t.add_row(b, f"{r['mean_abs_distance_mm']:.3f}", f"{r['max_distance_mm']:.2f}", f"{r['volume_error_pct']:+.2f}")
-    console.print(t)
-    p = summary.get("pipeline")
-    if p:
-        e = Table(title="Joint estimates vs phantom truth (worst side; static-trial lab frame)")
-        for col in ("quantity", "MRI only", "motion only", "fused"):
-            e.add_column(col, justify="right" if col != "quantity" else "left")
-        for k, v in p["errors"].items():
-            e.add_row(k, *(f"{v[s]:.2f}" for s in ("mri", "motion", "fused")))
-        console.print(e)
-        console.print(f"personalised model: IK marker RMS {p['ik_rms_mm']:.2f} mm (worst trial mean)")
