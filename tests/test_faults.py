@@ -75,7 +75,7 @@ def read_only(tmp_path):
 @pytest.fixture(scope="module")
 def subject(tmp_path_factory) -> Path:
     """A phantom SUBJECT_DIR (3 mm labels, short trials): real C3D, subject.json, truth.json."""
-    from personalize.pipeline import write_phantom_subject
+    from personalize.evaluation.phantom_subject import write_phantom_subject
 
     return write_phantom_subject(tmp_path_factory.mktemp("faults") / "subject", seed=1, voxel_mm=3.0)
 
@@ -329,7 +329,7 @@ def test_4_markers_of_another_person(capsys, subject, tmp_path):
 @pytest.mark.slow
 def test_4_run_with_bones_of_another_person(capsys, subject, tmp_path):
     """The MRI bones of a taller phantom with this subject's markers: refused by the pelvis registration gate."""
-    from personalize.pipeline import write_phantom_subject
+    from personalize.evaluation.phantom_subject import write_phantom_subject
 
     other = write_phantom_subject(tmp_path / "other", seed=3, voxel_mm=3.0)
     d = tmp_path / "mixed"
@@ -494,3 +494,14 @@ def test_8_plain_progress_lines_when_not_a_terminal():
     assert lines[0].startswith("run [1/~4]") and lines[0].endswith("reading inputs") and "elapsed" in lines[0]
     assert "left" in lines[2] and lines[2].endswith("IK gait_01")
     assert lines[-1].startswith("run: 3 steps in ")
+
+
+def test_3_phantom_out_equal_to_its_anatomy_folder_is_refused_and_the_bones_kept(capsys, tmp_path):
+    # with --overwrite, an --out equal to the input folder would be set aside and deleted
+    anatomy = tmp_path / "bones"
+    anatomy.mkdir()
+    (anatomy / "femur_r.ply").write_bytes(b"ply\n")
+    code, lines = run_cli(capsys, "phantom", "--anatomy", str(anatomy), "--out", str(anatomy), "--overwrite")
+    assert code == 2
+    one_error(lines, str(anatomy))
+    assert (anatomy / "femur_r.ply").read_bytes() == b"ply\n"
