@@ -25,7 +25,7 @@ ALIASES: dict[str, str] = {
 }
 
 #: file stems of a whole foot in one mesh (tarsals, metatarsals, phalanges), side; a mesh folder's reader
-#: splits it into talus, calcn and toes (`personalize.whole_foot`); a label map's ``foot_r`` is the calcn
+#: splits it into talus, calcn and toes (`personalize.io.whole_foot`); a label map's ``foot_r`` is the calcn
 WHOLE_FOOT: dict[str, str] = {"foot_r": "r", "foot_l": "l"}
 
 #: when several files name one bone, the stem read (the others are listed as ignored): the hip bones without

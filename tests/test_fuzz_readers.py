@@ -289,7 +289,7 @@ def test_fuzz_mot(seeds, tmp_path):
 
 @pytest.mark.parametrize("seed_name", ["ply", "ply_ascii"])
 def test_fuzz_ply(seeds, tmp_path, seed_name):
-    from personalize.io import _load_mesh_file
+    from personalize.io.meshes import _load_mesh_file
 
     data = seeds[seed_name].read_bytes()
     cases = Cases()

@@ -220,7 +220,7 @@ def add_sampling_uncertainty(ls, surfaces) -> dict[str, float]:
     primitives see the reconstructed surface, whose error the fits' own
     residuals cannot show.  Returns bone -> sd (m) for the bones changed.
     """
-    from .landmarks.common import Landmark
+    from ..landmarks.common import Landmark
 
     done = {}
     for name, res in ls.bones.items():

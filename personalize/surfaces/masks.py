@@ -1,0 +1,120 @@
+"""Bone masks cleaned before surfacing: largest component, epiphyses joined across a growth plate, cavities filled."""
+from __future__ import annotations
+
+import numpy as np
+import scipy.ndimage as ndi
+
+__all__ = ["clean_mask", "PHYSIS_GAP", "EPIPHYSIS_MIN_FRACTION", "EPIPHYSIS_MIN_CONTACT"]
+
+
+def _fill_cavities(mask: np.ndarray) -> np.ndarray:
+    """Fill enclosed cavities: background not 6-connected to the array border becomes bone.
+
+    Same result as `scipy.ndimage.binary_fill_holes`, but one labelling pass
+    instead of an iterated dilation (several times faster on a bone's box).
+    """
+    bg, n = ndi.label(~mask)
+    if n <= 1:
+        return mask if n == 1 else np.ones_like(mask)
+    border = np.zeros(n + 1, bool)
+    for ax in range(3):
+        for idx in (0, -1):
+            border[np.unique(np.take(bg, idx, axis=ax))] = True
+    border[0] = False  # label 0 is the bone itself
+    return ~border[bg]  # bone, or background enclosed by it
+
+
+#: widest unlabelled gap (m) across which a separate piece of a bone is joined back
+#: to it: a child's open growth plate (physis, 1-3 mm of cartilage in MRI)
+PHYSIS_GAP = 0.004
+#: a piece is an epiphysis (joined) rather than noise or a sesamoid (removed) when it
+#: holds at least this fraction of the main component's voxels ...
+EPIPHYSIS_MIN_FRACTION = 0.005
+#: ... and this fraction of its boundary faces the main component within PHYSIS_GAP
+#: (a growth plate spans the bone's cross-section; a fibula labelled with its tibia
+#: touches it only at the two tibiofibular joints)
+EPIPHYSIS_MIN_CONTACT = 0.1
+
+
+def clean_mask(mask: np.ndarray, keep_fraction: float = 0.1, spacing=None,
+               physis_gap: float = PHYSIS_GAP) -> tuple[np.ndarray, dict]:
+    r"""Keep the largest 26-connected component of a bone mask, join its epiphyses, fill its cavities.
+
+    Components with at least `keep_fraction` of the largest one's voxels are kept
+    too (a pelvis label may hold two hip bones that touch nowhere).  With the
+    voxel `spacing` given, a smaller piece separated from the largest
+    component by an unlabelled gap of at most `physis_gap` across a broad
+    face (an epiphysis behind a child's open growth plate, see
+    ``EPIPHYSIS_MIN_FRACTION`` and ``EPIPHYSIS_MIN_CONTACT``) is joined back:
+    the gap voxels ``x`` with :math:`d_{main}(x) + d_{piece}(x) \le g + h_{max}`
+    (``g`` the piece's distance from the main component, ``d`` Euclidean
+    distances in metres) whose nearest main and piece voxels lie on opposite
+    sides (angle over 135 degrees: inside the plate, not beside its rim) are
+    set, so the bone is surfaced as one rigid body.
+    Other small islands are segmentation noise and removed.
+
+    Returns
+    -------
+    mask : ndarray of bool
+    report : dict
+        ``islands_removed`` (list of voxel counts), ``epiphyses_joined`` (voxels,
+        gap in m), ``holes_filled_voxels``, ``components_kept``.
+    """
+    lab, n = ndi.label(mask, structure=np.ones((3, 3, 3), bool))
+    removed: list[int] = []
+    joined: list[dict] = []
+    if n > 1:
+        sizes = np.bincount(lab.ravel())[1:]
+        keep = sizes >= keep_fraction * sizes.max()
+        main = int(np.argmax(sizes)) + 1
+        bridges = np.zeros(mask.shape, bool)
+        if spacing is not None:
+            h = np.asarray(spacing, float)
+            for c in np.flatnonzero(sizes < 0.5 * sizes.max()) + 1:
+                if sizes[c - 1] < EPIPHYSIS_MIN_FRACTION * sizes.max():
+                    continue
+                out = _join_piece(lab, main, int(c), h, physis_gap)
+                if out is not None:
+                    bridges |= out[0]
+                    keep[c - 1] = True
+                    joined.append({"voxels": int(sizes[c - 1]), "gap_m": out[1]})
+        removed = sorted((int(s) for s in sizes[~keep]), reverse=True)
+        mask = (keep[np.maximum(lab - 1, 0)] & (lab > 0)) | bridges
+    else:
+        mask = lab > 0
+    filled = _fill_cavities(mask)
+    return filled, {"islands_removed": [{"voxels": v} for v in removed], "epiphyses_joined": joined,
+                    "holes_filled_voxels": int(filled.sum() - mask.sum()),
+                    "components_kept": int(n - len(removed)) if n else 0}
+
+
+def _join_piece(lab: np.ndarray, main: int, piece: int, h: np.ndarray, gap: float):
+    """Bridge voxels joining component `piece` to `main` across a growth-plate gap, or None."""
+    pad = np.ceil(gap / h).astype(int) + 1
+    idx = np.argwhere(lab == piece)
+    lo = np.maximum(idx.min(0) - pad, 0)
+    hi = np.minimum(idx.max(0) + pad + 1, lab.shape)
+    sl = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+    sub = lab[sl]
+    m, p = sub == main, sub == piece
+    if not m.any():
+        return None
+    d_main, i_main = ndi.distance_transform_edt(~m, sampling=h, return_indices=True)
+    boundary = p & ~ndi.binary_erosion(p, structure=np.ones((3, 3, 3), bool))
+    near = boundary & (d_main <= gap + h.max())
+    if near.sum() < EPIPHYSIS_MIN_CONTACT * boundary.sum():
+        return None
+    g = float(d_main[p].min())
+    d_piece, i_piece = ndi.distance_transform_edt(~p, sampling=h, return_indices=True)
+    bridge = (sub == 0) & (d_main + d_piece <= g + h.max()) & (d_main <= gap + h.max()) & (d_piece <= gap + h.max())
+    # inside the plate the nearest main and piece voxels lie on opposite sides; beside
+    # its rim they do not (the bridge must not bulge out of the bone's outline)
+    x = np.argwhere(bridge)
+    to_main = (i_main[(slice(None), *x.T)].T - x) * h
+    to_piece = (i_piece[(slice(None), *x.T)].T - x) * h
+    cos = np.einsum("ij,ij->i", to_main, to_piece) / np.maximum(
+        np.linalg.norm(to_main, axis=1) * np.linalg.norm(to_piece, axis=1), 1e-12)
+    bridge[tuple(x[cos > -0.7].T)] = False
+    out = np.zeros(lab.shape, bool)
+    out[sl] = bridge
+    return out, g
