@@ -55,9 +55,12 @@ from rich.progress import Progress  # noqa: E402
 
 from lowerlimb.atomic import staged_dir, write_text  # noqa: E402
 from kinematics.algorithms.fk import forward_kinematics  # noqa: E402
-from kinematics.mechanisms.spine import (KinematicTasks, balanced_posture_tasks, isolated_spine,  # noqa: E402
-                              isolated_spine_tasks, mannequin, periodic_drift, spine_drift_bound, spine_layout,
-                              spine_solver, swing_components, torsion_direction_changes, vertebral_twist)
+from kinematics.algorithms.prioritized import PrioritizedIK  # noqa: E402
+from kinematics.algorithms.tasks import KinematicTasks  # noqa: E402
+from kinematics.mechanisms.spine import isolated_spine, mannequin, spine_layout  # noqa: E402
+from kinematics.mechanisms.spine_measures import (spine_drift_bound, swing_components,  # noqa: E402
+                                                  torsion_direction_changes, vertebral_twist)
+from spine_experiments import balanced_posture_tasks, isolated_spine_tasks, periodic_drift  # noqa: E402
 
 CHECKPOINTS = (1, 5, 50, 100, 200, 600, 2000)
 
@@ -78,7 +81,7 @@ DRIFT_VARIANTS = {
 
 def _solve_timed(model, tasks, iterations, repeats):
     """Run the IK `repeats` times from the default pose; median time per iteration over all runs."""
-    ik = spine_solver(model, tasks)
+    ik = PrioritizedIK.from_model(model, tasks)
     per_iter = []
     res = None
     for _ in range(repeats):
@@ -113,7 +116,7 @@ def experiment_balanced(repeats: int, spine: str = "simplified") -> dict:
     for label, coupled in (("coupled", True), ("uncoupled", False)):
         model = mannequin(spine, coupled)
         kt = KinematicTasks(model)
-        ik = spine_solver(model, balanced_posture_tasks(model, kt))
+        ik = PrioritizedIK.from_model(model, balanced_posture_tasks(model, kt))
         res = ik.solve(model.default_q, max_iterations=300, tol=1e-6)
         times = [ik.solve(model.default_q, max_iterations=20, tol=0.0).times for _ in range(repeats)]
         changes = torsion_direction_changes(model, res.q)

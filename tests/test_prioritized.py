@@ -5,8 +5,10 @@ import numpy as np
 import pytest
 
 from lowerlimb.errors import InputError
-from kinematics.algorithms.prioritized import (ConstraintSet, LinearConstraint, PrioritizedIK, RecruitingError, Task,
-                                    check_recruiting)
+from kinematics.algorithms.constraints import ConstraintSet, LinearConstraint
+from kinematics.algorithms.prioritized import PrioritizedIK
+from kinematics.algorithms.recruiting import RecruitingError, check_recruiting
+from kinematics.algorithms.tasks import Task
 
 
 def linear_task(a, target, name="lin", **kw):

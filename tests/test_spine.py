@@ -7,11 +7,14 @@ import pytest
 from kinematics.multibody.coupling import initial_projector
 from lowerlimb.errors import InputError
 from kinematics.multibody.joints import SwingJoint
-from kinematics.algorithms.prioritized import ConstraintSet, LinearConstraint, RecruitingError
-from kinematics.mechanisms.spine import (KinematicTasks, balanced_posture_tasks, isolated_spine, isolated_spine_tasks,
-                              mannequin, periodic_drift, posture_distance, spine_coordinates, spine_distance,
-                              spine_drift_bound, spine_layout, spine_solver, swing_components,
-                              torsion_direction_changes, vertebral_twist)
+from kinematics.algorithms.constraints import ConstraintSet, LinearConstraint
+from kinematics.algorithms.prioritized import PrioritizedIK
+from kinematics.algorithms.recruiting import RecruitingError
+from kinematics.algorithms.tasks import KinematicTasks
+from kinematics.mechanisms.spine import isolated_spine, mannequin, spine_layout
+from kinematics.mechanisms.spine_measures import (posture_distance, spine_coordinates, spine_distance, spine_drift_bound,
+                                                  swing_components, torsion_direction_changes, vertebral_twist)
+from spine_experiments import balanced_posture_tasks, isolated_spine_tasks, periodic_drift
 
 HANIM = ([f"vl{i}" for i in range(5, 0, -1)] + [f"vt{i}" for i in range(12, 0, -1)]
          + [f"vc{i}" for i in range(7, 0, -1)])
@@ -28,7 +31,7 @@ def isolated_runs():
     runs = {}
     for coupled in (True, False):
         model = isolated_spine("full", coupled)
-        ik = spine_solver(model, isolated_spine_tasks(model))
+        ik = PrioritizedIK.from_model(model, isolated_spine_tasks(model))
         q = model.default_q
         qs = [q]
         for _ in range(25):
@@ -65,7 +68,7 @@ def test_simplified_spine_structure():
 
 def test_projector_matches_shared_coupling_mechanism(full_coupled):
     cons = ConstraintSet.from_model(full_coupled)
-    ik = spine_solver(full_coupled, isolated_spine_tasks(full_coupled))
+    ik = PrioritizedIK.from_model(full_coupled, isolated_spine_tasks(full_coupled))
     np.testing.assert_allclose(ik._Z0 @ ik._Z0.T, initial_projector(cons.C), atol=1e-12)
 
 
@@ -126,7 +129,7 @@ def balanced():
     out = {}
     for coupled in (True, False):
         m = mannequin("simplified", coupled)
-        ik = spine_solver(m, balanced_posture_tasks(m, KinematicTasks(m)))
+        ik = PrioritizedIK.from_model(m, balanced_posture_tasks(m, KinematicTasks(m)))
         res = ik.solve(m.default_q, max_iterations=200, tol=1e-6)
         out[coupled] = (m, ik, res)
     return out
@@ -150,7 +153,7 @@ def test_recruiting_rule_on_mannequin():
     bad = [t if "hand" not in t.name else type(t)(t.name, t.function, t.priority, t.ancestors, t.ancestors)
            for t in tasks]
     with pytest.raises(RecruitingError, match=r"eq\. \(4\).*vc"):
-        spine_solver(m, bad)
+        PrioritizedIK.from_model(m, bad)
 
 
 @pytest.fixture(scope="module")

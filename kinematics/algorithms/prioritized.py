@@ -43,15 +43,7 @@ working set is conflicting: it is skipped (the first added wins, reported in
 `StepResult.conflicts`) and the step is then shortened to the largest
 fraction that keeps every inequality satisfied (`StepResult.scaled`).
 
-Recruiting levels (Raunhardt & Boulic 2007, eqs. 3-5), for priority levels
-``a`` above ``b``::
-
-    (3)  Rec(T_b) & Anc(T_a)  <=  Rec(T_a)
-    (4)  (Rec(T_b) | Coup(Rec(T_b))) & (Anc(T_a) | Coup(Rec(T_a)))  <=  Rec(T_a)
-    (5)  U_i Coup(Rec(T_i))  <=  U_i Rec(T_i)
-
-``Coup(R)`` is the set of coordinates coupled to ``R`` through the constraint
-graph (transitively).  `check_recruiting` reports every violation.
+Recruiting levels: `kinematics.algorithms.recruiting`.
 
 Tasks are plain callables ``task(q) -> (error (m,), jacobian (m, n))`` so the
 solver is independent of the kinematic model.
@@ -60,362 +52,18 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 
-from kinematics.multibody.coupling import LinearCoupling, LinearInequalities, null_space_parametrization
+from kinematics.algorithms.constraints import ConstraintBasis, ConstraintSet
+from kinematics.algorithms.recruiting import check_recruiting, task_sets
+from kinematics.algorithms.tasks import Task
 from lowerlimb.errors import InputError
 
-__all__ = [
-    "LinearConstraint",
-    "ConstraintSet",
-    "Task",
-    "RecruitingError",
-    "RecruitingReport",
-    "check_recruiting",
-    "StepResult",
-    "SolveResult",
-    "PrioritizedIK",
-]
-
-TaskFunction = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+__all__ = ["StepResult", "SolveResult", "PrioritizedIK"]
 
 _REL_RANK_TOL = 1e-10
-
-
-class RecruitingError(InputError):
-    """A task set violates the recruiting-level rules (eqs. 3-5 of the seed)."""
-
-
-@dataclass(frozen=True)
-class LinearConstraint:
-    """One linear constraint ``sum_k coefficients[k] * q[k]  (= or <=)  value``.
-
-    Parameters
-    ----------
-    coefficients : mapping of coordinate name -> float
-        Non-zero coefficients (dimensionless for angle-angle couplings).
-    value : float
-        Right-hand side, in the unit of the combination (rad or m).
-    kind : {"eq", "le"}
-        Equality ``c^T q = b`` or inequality ``c^T q <= b``.
-    name : str
-        Label used in reports.
-    """
-
-    coefficients: Mapping[str, float]
-    value: float = 0.0
-    kind: str = "eq"
-    name: str = ""
-
-    @staticmethod
-    def ratio(a: str, b: str, k: float, name: str = "") -> "LinearConstraint":
-        """Equality ``q[a] = k q[b]`` (coupling with coefficient ``k``)."""
-        return LinearConstraint({a: 1.0, b: -float(k)}, 0.0, "eq", name or f"{a}={k:g}*{b}")
-
-    @staticmethod
-    def band(a: str, b: str, k: float, width: float, name: str = "") -> tuple["LinearConstraint", "LinearConstraint"]:
-        """Two inequalities ``|q[a] - k q[b]| <= width`` (relaxed coupling)."""
-        nm = name or f"{a}~{k:g}*{b}"
-        return (LinearConstraint({a: 1.0, b: -float(k)}, float(width), "le", nm + "<="),
-                LinearConstraint({a: -1.0, b: float(k)}, float(width), "le", nm + ">="))
-
-
-@dataclass(frozen=True)
-class ConstraintSet:
-    """Linear equalities ``C q = b`` and inequalities ``G q <= h`` over named coordinates.
-
-    Build with `ConstraintSet.build`, which validates names and checks the
-    equalities for consistency.
-
-    Attributes
-    ----------
-    coordinate_names : tuple of str, (n,)
-    C : ndarray, (m_eq, n);  b : ndarray, (m_eq,)
-    G : ndarray, (m_in, n);  h : ndarray, (m_in,)
-    eq_names, in_names : tuple of str
-    """
-
-    coordinate_names: tuple[str, ...]
-    C: np.ndarray
-    b: np.ndarray
-    G: np.ndarray
-    h: np.ndarray
-    eq_names: tuple[str, ...]
-    in_names: tuple[str, ...]
-
-    @classmethod
-    def build(cls, coordinate_names: Sequence[str], constraints: Sequence[LinearConstraint] = (),
-              *, on_conflict: str = "raise", source: str = "constraints") -> "ConstraintSet":
-        """Validate and assemble constraints.
-
-        Parameters
-        ----------
-        coordinate_names : sequence of str
-        constraints : sequence of LinearConstraint
-        on_conflict : {"raise", "first_wins"}
-            An equality inconsistent with earlier ones raises `InputError`
-            ("raise") or is kept and later skipped by the solver ("first_wins").
-
-        Raises
-        ------
-        InputError
-            Unknown coordinate, bad kind, non-finite or all-zero coefficients,
-            inconsistent equalities (with ``on_conflict="raise"``).
-        """
-        names = tuple(coordinate_names)
-        index = {nm: i for i, nm in enumerate(names)}
-        n = len(names)
-        if on_conflict not in ("raise", "first_wins"):
-            raise InputError(source, f"on_conflict must be 'raise' or 'first_wins', not {on_conflict!r}")
-        eq_rows, eq_b, eq_names, in_rows, in_h, in_names = [], [], [], [], [], []
-        for k, con in enumerate(constraints):
-            label = con.name or f"constraint #{k}"
-            if con.kind not in ("eq", "le"):
-                raise InputError(source, f"{label}: kind must be 'eq' or 'le', not {con.kind!r}")
-            row = np.zeros(n)
-            for coord, coef in con.coefficients.items():
-                if coord not in index:
-                    raise InputError(source, f"{label}: coordinate {coord!r} does not exist in the model")
-                if not np.isfinite(coef):
-                    raise InputError(source, f"{label}: coefficient of {coord!r} is not finite")
-                row[index[coord]] += float(coef)
-            if not np.any(row) or not np.isfinite(con.value):
-                raise InputError(source, f"{label}: all coefficients are zero or the value is not finite")
-            if con.kind == "eq":
-                eq_rows.append(row), eq_b.append(float(con.value)), eq_names.append(label)
-            else:
-                in_rows.append(row), in_h.append(float(con.value)), in_names.append(label)
-        C = np.array(eq_rows, float).reshape(-1, n)
-        b = np.array(eq_b, float)
-        if on_conflict == "raise" and len(C):
-            basis = _Basis(n)
-            for row, val, label in zip(C, b, eq_names):
-                status = basis.add(row, val)
-                if status == "conflict":
-                    raise InputError(source, f"equality {label!r} is inconsistent with the equalities before it "
-                                     "(linearly dependent with a different right-hand side)")
-        return cls(names, C, b, np.array(in_rows, float).reshape(-1, n), np.array(in_h, float),
-                   tuple(eq_names), tuple(in_names))
-
-    @classmethod
-    def from_model(cls, model, extra: Sequence[LinearConstraint] = (), *, on_conflict: str = "raise") -> "ConstraintSet":
-        """Constraints stored on a `kinematics.multibody.model.Model` (``couplings``, ``inequalities``) plus `extra`."""
-        names = model.coordinate_names
-        rows = []
-        for lin, kind in ((model.couplings, "eq"), (model.inequalities, "le")):
-            if lin is None:
-                continue
-            for row, val, label in zip(lin.matrix, lin.rhs, lin.labels):
-                rows.append(LinearConstraint({names[i]: row[i] for i in np.flatnonzero(row)}, float(val), kind, label))
-        return cls.build(names, [*rows, *extra], on_conflict=on_conflict, source=f"model {model.name!r}")
-
-    def as_linear(self) -> tuple[LinearCoupling | None, LinearInequalities | None]:
-        """The same rows as the shared containers of `kinematics.multibody.coupling` (for `Model.replace`)."""
-        eq = LinearCoupling(self.coordinate_names, self.C, self.b, self.eq_names) if len(self.b) else None
-        ineq = (LinearInequalities(self.coordinate_names, self.G, self.h, self.in_names) if len(self.h) else None)
-        return eq, ineq
-
-    def coupled_groups(self) -> list[set[int]]:
-        """Connected components (coordinate indices) of the constraint graph."""
-        parent = list(range(len(self.coordinate_names)))
-
-        def find(i):
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
-        for row in np.vstack([self.C, self.G]):
-            idx = np.flatnonzero(row)
-            for j in idx[1:]:
-                parent[find(j)] = find(idx[0])
-        groups: dict[int, set[int]] = {}
-        for i in range(len(parent)):
-            groups.setdefault(find(i), set()).add(i)
-        return [g for g in groups.values() if len(g) > 1]
-
-    def equality_residual(self, q: np.ndarray) -> np.ndarray:
-        """``C q - b`` (m_eq,) in the unit of each row."""
-        return self.C @ q - self.b
-
-    def inequality_excess(self, q: np.ndarray) -> np.ndarray:
-        """``G q - h`` (m_in,); positive entries are violations."""
-        return self.G @ q - self.h
-
-
-class _Basis:
-    """Orthonormal basis of accepted constraint rows, built by Gram-Schmidt.
-
-    Implements the seed's ``init_projector``: a row whose component outside the
-    span of the accepted rows vanishes is conflicting (different right-hand
-    side) or redundant, and is skipped: the first added wins.
-    """
-
-    def __init__(self, n: int):
-        self.n = n
-        self.Q = np.zeros((0, n))
-        self.rows = np.zeros((0, n))
-        self.values = np.zeros(0)
-        self._pinv = None
-
-    def copy(self) -> "_Basis":
-        other = _Basis(self.n)
-        other.Q, other.rows, other.values = self.Q.copy(), self.rows.copy(), self.values.copy()
-        return other
-
-    def add(self, row: np.ndarray, value: float) -> str:
-        scale = np.linalg.norm(row)
-        r = row - self.Q.T @ (self.Q @ row)
-        r = r - self.Q.T @ (self.Q @ r)          # re-orthogonalise (stability)
-        if np.linalg.norm(r) <= 1e-9 * scale:
-            if len(self.rows):
-                coef, *_ = np.linalg.lstsq(self.rows.T, row, rcond=None)
-                implied = coef @ self.values
-            else:
-                implied = 0.0
-            return "redundant" if abs(implied - value) <= 1e-9 * max(1.0, abs(value)) else "conflict"
-        self.Q = np.vstack([self.Q, r / np.linalg.norm(r)])
-        self.rows = np.vstack([self.rows, row])
-        self.values = np.append(self.values, value)
-        return "accepted"
-
-    def nullspace(self) -> np.ndarray:
-        """Orthonormal basis Z (n, n - k) of the range of ``P_0`` (``P_0 = Z Z^T``).
-
-        Uses the shared coupling mechanism (`kinematics.multibody.coupling`) on the accepted rows.
-        """
-        if not len(self.rows):
-            return np.eye(self.n)
-        return null_space_parametrization(self.rows, self.values)[1]
-
-    def restoring_variation(self, q: np.ndarray) -> np.ndarray:
-        """Minimum-norm ``dq_0 = A^+ (b - A q)`` over the accepted rows (n,).
-
-        Same as `kinematics.multibody.coupling.restoring_variation`, with ``A^+`` cached:
-        the basis of the user equalities is reused by every step.
-        """
-        if not len(self.rows):
-            return np.zeros(self.n)
-        if self._pinv is None or self._pinv.shape[1] != len(self.rows):
-            self._pinv = np.linalg.pinv(self.rows, rcond=1e-10)
-        return self._pinv @ (self.values - self.rows @ q)
-
-
-@dataclass(frozen=True)
-class Task:
-    """One IK task.
-
-    Parameters
-    ----------
-    name : str
-    function : callable ``q -> (error (m,), jacobian (m, n))``
-        ``error`` is the desired minus the current value of the task
-        (m or rad); ``jacobian`` its derivative with respect to the
-        coordinates of the current value.
-    priority : int
-        0 is the highest priority; tasks with equal priority share a level.
-    recruited : tuple of str or None
-        Rec(T): coordinates allowed to move for this task (None: all of
-        ``ancestors``, or every coordinate when ``ancestors`` is None too).
-    ancestors : tuple of str or None
-        Anc(T): coordinates between the task's body and the root.
-    max_error : float or None
-        Error norm clamped to this value per step (step-size control).
-    """
-
-    name: str
-    function: TaskFunction
-    priority: int = 0
-    recruited: tuple[str, ...] | None = None
-    ancestors: tuple[str, ...] | None = None
-    max_error: float | None = None
-
-
-@dataclass(frozen=True)
-class RecruitingReport:
-    """Result of `check_recruiting`: ``violations`` is a tuple of one-line messages."""
-
-    violations: tuple[str, ...]
-
-    @property
-    def ok(self) -> bool:
-        return not self.violations
-
-    def raise_if_violated(self, source: str = "tasks") -> None:
-        if self.violations:
-            raise RecruitingError(source, "recruiting-level rules violated: " + "; ".join(self.violations))
-
-
-def _task_sets(task: Task, names: Sequence[str]) -> tuple[set[str], set[str]]:
-    anc = set(task.ancestors) if task.ancestors is not None else set(names)
-    rec = set(task.recruited) if task.recruited is not None else set(anc)
-    return rec, anc
-
-
-def check_recruiting(tasks: Sequence[Task], constraints: ConstraintSet) -> RecruitingReport:
-    """Check the recruiting-level conditions (eqs. 3-5 of Raunhardt & Boulic 2007).
-
-    For every pair of levels ``a`` (higher priority) and ``b`` (lower)::
-
-        (3) Rec_b & Anc_a <= Rec_a
-        (4) (Rec_b | Coup(Rec_b)) & (Anc_a | Coup(Rec_a)) <= Rec_a
-        (5) U Coup(Rec_i) <= U Rec_i
-
-    Rec, Anc of a level are the unions over its tasks.  Coup(R) contains the
-    coordinates linked to R through the constraint graph (equalities and user
-    inequalities, transitively), R excluded.
-    """
-    names = constraints.coordinate_names
-    known = set(names)
-    violations = []
-    for t in tasks:
-        for label, group in (("recruited", t.recruited), ("ancestors", t.ancestors)):
-            missing = sorted(set(group or ()) - known)
-            if missing:
-                violations.append(f"task {t.name!r}: {label} coordinate(s) {missing[:5]} do not exist")
-    if violations:
-        return RecruitingReport(tuple(violations))
-    groups = [{names[i] for i in g} for g in constraints.coupled_groups()]
-
-    def coup(rec: set[str]) -> set[str]:
-        out = set()
-        for g in groups:
-            if g & rec:
-                out |= g
-        return out - rec
-
-    levels: dict[int, tuple[set[str], set[str], list[str]]] = {}
-    for t in tasks:
-        rec, anc = _task_sets(t, names)
-        r, a, nm = levels.setdefault(t.priority, (set(), set(), []))
-        r |= rec
-        a |= anc
-        nm.append(t.name)
-    order = sorted(levels)
-
-    def show(s):
-        s = sorted(s)
-        return str(s[:4])[:-1] + (", ...]" if len(s) > 4 else "]")
-
-    for ia, pa in enumerate(order):
-        rec_a, anc_a, names_a = levels[pa]
-        for pb in order[ia + 1:]:
-            rec_b, anc_b, names_b = levels[pb]
-            bad3 = (rec_b & anc_a) - rec_a
-            if bad3:
-                violations.append(f"eq. (3): level {pb} {names_b} recruits {show(bad3)} which are ancestors "
-                                  f"of level {pa} {names_a} but not recruited by it")
-            bad4 = ((rec_b | coup(rec_b)) & (anc_a | coup(rec_a))) - rec_a - bad3
-            if bad4:
-                violations.append(f"eq. (4): through coupling, level {pb} {names_b} moves {show(bad4)} which "
-                                  f"level {pa} {names_a} reaches but does not recruit")
-    all_rec = set().union(*(levels[p][0] for p in order)) if order else set()
-    bad5 = coup(all_rec) - all_rec
-    if bad5:
-        violations.append(f"eq. (5): coordinates {show(bad5)} are coupled to recruited ones but recruited by no task")
-    return RecruitingReport(tuple(violations))
 
 
 @dataclass(frozen=True)
@@ -497,7 +145,7 @@ class PrioritizedIK:
         for p in sorted({t.priority for t in tasks}):
             level = []
             for t in (t for t in tasks if t.priority == p):
-                rec, _ = _task_sets(t, self.names)
+                rec, _ = task_sets(t, self.names)
                 mask = np.zeros(n, bool)
                 mask[[index[c] for c in rec if c in index]] = True
                 level.append((t, mask))
@@ -508,7 +156,7 @@ class PrioritizedIK:
             raise InputError("limits", f"lower/upper must have shape ({n},) with lower <= upper")
         self.damping = float(damping)
         # P0 of the user equalities is constant: build it once (first added wins).
-        self._base = _Basis(n)
+        self._base = ConstraintBasis(n)
         self._base_conflicts = []
         for row, val, nm in zip(constraints.C, constraints.b, constraints.eq_names):
             if self._base.add(row, val) == "conflict":
@@ -522,6 +170,15 @@ class PrioritizedIK:
         self._lim_h = np.concatenate([-self.lower[lim], self.upper[lim_u]])
         self._lim_names = tuple([f"{self.names[i]} >= lower limit" for i in lim]
                                 + [f"{self.names[i]} <= upper limit" for i in lim_u])
+
+    @classmethod
+    def from_model(cls, model, tasks: Sequence[Task], damping: float = 0.05, check: bool = True) -> "PrioritizedIK":
+        """Solver over a `Model`: its couplings and inequalities, and the ranges of its clamped coordinates."""
+        cons = ConstraintSet.from_model(model)
+        clamped = np.array([c.clamped for c in model.coordinates])
+        lower = np.where(clamped, model.lower, -np.inf)
+        upper = np.where(clamped, model.upper, np.inf)
+        return cls(model.coordinate_names, tasks, cons, lower, upper, damping=damping, check=check)
 
     # -- core -----------------------------------------------------------------
     def _evaluate(self, q):
