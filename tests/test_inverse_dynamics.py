@@ -348,6 +348,23 @@ def test_ragged_ground_reaction_file_refused(shared_data, tmp_path):
         read_external_loads(d / "subject01_walk1_grf.xml", tmp_path / "grf.mot")
 
 
+def test_non_finite_ground_reaction_refused_naming_the_file(shared_data, tmp_path):
+    """A NaN in a force column (read_mot accepts it as a gap) cannot become a force: InputError, not a crash."""
+    from kinematics.io.external_loads import read_external_loads
+
+    d = shared_data / GAIT
+    lines = (d / "subject01_walk1_grf.mot").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.strip().lower() == "endheader")
+    labels = lines[k + 1].split("\t")
+    col = next(i for i, c in enumerate(labels) if c.strip().endswith("vy"))
+    row = lines[k + 11].split("\t")
+    row[col] = "nan"
+    lines[k + 11] = "\t".join(row)
+    (tmp_path / "grf.mot").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"grf\.mot.*not finite at row 10 "):
+        read_external_loads(d / "subject01_walk1_grf.xml", tmp_path / "grf.mot")
+
+
 def test_excluded_intervals_are_nan_and_noted(trial):
     from kinematics.gait.inverse_dynamics import lab_to_ground, trial_inverse_dynamics
 

@@ -168,6 +168,12 @@ def read_external_loads(xml_path: str | os.PathLike, mot_path: str | os.PathLike
         force = table.select([fid + c for c in "xyz"])
         point = table.select([pid + c for c in "xyz"])
         torque = table.select([tid + c for c in "xyz"]) if tid else np.zeros_like(force)
+        for ident, values in ((fid, force), (pid, point), (tid, torque)):
+            bad = np.argwhere(~np.isfinite(values))
+            if len(bad):   # a gap in a load cannot be interpolated into a force: refuse, do not guess
+                row, col = bad[0]
+                raise InputError(mot_path, f"column {ident + 'xyz'[col]!r} is not finite at row {row + 1} "
+                                           f"(t = {table.time[row]:.4f} s); {len(bad)} such value(s)")
         loads.append(ExternalLoad(f.get("name") or fid, body, table.time.copy(), force, point, torque))
     if not loads:
         raise InputError(xml_path, "no enabled ExternalForce")
