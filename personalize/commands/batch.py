@@ -19,6 +19,8 @@ from pathlib import Path
 
 import typer
 
+from personalize.cohort.records import DEFAULT_JOB
+
 
 def batch(
     manifest: Path = typer.Argument(..., help="CSV with columns subject,path."),
@@ -27,7 +29,7 @@ def batch(
     workers: int = typer.Option(2, "--workers", help="Worker processes of the local cluster (one thread each)."),
     retries: int = typer.Option(2, "--retries", help="Extra attempts of a subject after an unexpected failure."),
     rerun: bool = typer.Option(False, "--rerun", help="Run every subject again, even those already complete."),
-    job: str = typer.Option("personalize.pipeline.run_subject", "--job",
+    job: str = typer.Option(DEFAULT_JOB, "--job",
                             help="Per-subject function module.function(subject_dir, out) -> summary dict."),
 ) -> None:
     """Run the per-subject job on every subject of a manifest with dask.distributed."""
