@@ -26,8 +26,7 @@ def validate(
     scheduler: str = typer.Option("", "--scheduler", help="Address of an existing dask scheduler; default: a local cluster."),
     workers: int = typer.Option(2, "--workers", help="Worker processes of the local cluster."),
     motion: bool = typer.Option(True, "--motion/--no-motion", help="Also write and use the motion-capture trials."),
-    job: str = typer.Option("", "--job", help="Per-subject function module.function (default: the full pipeline "
-                                              "when installed, else the surface stage)."),
+    job: str = typer.Option("", "--job", help="Per-subject function module.function (default: the full pipeline)."),
     realistic: bool = typer.Option(False, "--realistic", help="The realistic set: analytic, ICL-MRI and LHDL-CT "
                                    "anatomy, four marker sets, z-up and y-up labs, child/adult/obese tissue, half "
                                    "without a functional trial, label volumes and mesh folders."),

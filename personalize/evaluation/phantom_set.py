@@ -8,7 +8,6 @@ subject folder (`ensure_phantom_subject`) and then runs the per-subject job on i
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 from dataclasses import asdict, dataclass
@@ -183,8 +182,8 @@ def ensure_phantom_subject(subject_dir: str | os.PathLike, spec: PhantomSpec | N
 def phantom_surfaces_job(subject_dir: Path, out: Path, progress: Callable[[str], None] | None = None) -> dict:
     """Surface stage only: bone surfaces from the labels vs the exact phantom meshes.
 
-    The job validation runs use while the full pipeline (`personalize.pipeline.run_subject`)
-    is not available.  Writes ``surfaces.json`` (mm, %) into `out`.
+    A light job for validation runs that test the surface stage alone (``--job`` `SURFACE_JOB`).
+    Writes ``surfaces.json`` (mm, %) into `out`.
     """
     import trimesh
 
@@ -211,10 +210,4 @@ def validation_job(subject_dir: Path, out: Path, progress: Callable[[str], None]
     ensure_phantom_subject(subject_dir, progress=progress)
     return resolve_job(job)(Path(subject_dir), out, progress=progress)
 
-
-def default_validation_job() -> str:
-    """The full pipeline when it is installed, else the surface stage."""
-    if importlib.util.find_spec("personalize.pipeline") is not None:
-        return DEFAULT_JOB
-    return SURFACE_JOB
 

@@ -30,10 +30,10 @@ from typing import Any, Callable, Sequence
 from lowerlimb.atomic import inside, write_text
 from lowerlimb.errors import InputError
 
-from personalize.cohort import BatchResult, Subject, run_batch, write_manifest
+from personalize.cohort import DEFAULT_JOB, BatchResult, Subject, run_batch, write_manifest
 from personalize.cohort.jobs import resolve_job
 from personalize.evaluation.metrics import TABLE_ONLY_EXCLUDED, flatten_metrics, fusion_statistics, write_metrics_csv
-from personalize.evaluation.phantom_set import SPEC, default_validation_job, draw_subjects, validation_job
+from personalize.evaluation.phantom_set import SPEC, draw_subjects, validation_job
 from personalize.evaluation.realistic_set import (REALISTIC_SPEC, coverage_metrics, draw_realistic_subjects,
                                                   realistic_table, realistic_validation_job)
 from personalize.presentation.validation_report import realistic_report, validation_report
@@ -52,10 +52,10 @@ class ValidationResult:
 
 
 def _checked_job(out: Path, job: str | None) -> str:
-    """The per-subject job (default: `default_validation_job`), importable; `out` must be a folder if it exists."""
+    """The per-subject job (default: the full pipeline), importable; `out` must be a folder if it exists."""
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
-    job = job or default_validation_job()
+    job = job or DEFAULT_JOB
     resolve_job(job)
     return job
 
@@ -110,7 +110,7 @@ def run_validation(n: int, seed: int, out: str | os.PathLike, *, scheduler=None,
     n, seed : number of subjects and master seed (same values -> same subjects)
     out : output folder (re-running with the same n and seed resumes)
     scheduler, workers : see `personalize.cohort.run_batch`
-    job : per-subject job (dotted path); default: the full pipeline if installed, else the surface stage
+    job : per-subject job (dotted path); default: the full pipeline (`personalize.cohort.DEFAULT_JOB`)
     ranges : overrides of `personalize.evaluation.phantom_set.DEFAULT_RANGES`
     bones : write only these bones (default all)
     motion : write the motion trials too
