@@ -23,9 +23,10 @@ from lowerlimb.errors import FitError, InputError
 
 from personalize.cohort.jobs import THREAD_ENV, JobDied, JobFailed, error_text, job_reference, resolve_job
 from personalize.cohort.process import remove_leftovers, run_subject_task
-from personalize.progress import BatchProgress
 from personalize.cohort.records import (BATCH_CSV, DEFAULT_JOB, SUMMARY, BatchResult, Subject, SubjectResult,
                                         check_subject_id, is_complete, read_manifest, write_batch_csv)
+from personalize.progress import BatchProgress
+
 
 @contextlib.contextmanager
 def _quiet_dask() -> Iterator[None]:
