@@ -60,7 +60,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from lowerlimb.atomic import write_text  # noqa: E402
-from kinematics.mechanisms.correlative import TextTable, coefficient_table, json_text, scale_factor  # noqa: E402
+from kinematics.mechanisms.law_transfer import scale_factor  # noqa: E402
+from lowerlimb.json_format import json_text  # noqa: E402
+from personalize.presentation.correlative_tables import TextTable, coefficient_table  # noqa: E402
 from correlative_experiments import (  # noqa: E402
     SEED_MARKERS, CorrelativeKnee, FreeKnee, compare_knees, knee_coordinate_errors, compare_knees_by_sub_motion, reduction, score_results,
     seed_protocol, sub_motion_knees, summarize, tracking_table, train_knees, whole_body_protocol,

@@ -45,7 +45,9 @@ from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from kinematics.mechanisms.correlative import CorrelativeLaw, TextTable, fit_law
+from kinematics.mechanisms.correlative import CorrelativeLaw
+from kinematics.mechanisms.correlative_fit import fit_law
+from personalize.presentation.correlative_tables import TextTable
 from kinematics.multibody.coupling import CoordinateCoupler, LinearCoupling
 from kinematics.multibody.coupling import LinearInequalities
 from lowerlimb.errors import FitError, InputError
@@ -322,7 +324,7 @@ def fit_planar_spline_knee(kin: KneeKinematics, n_knots: int = 6) -> PlanarSplin
 
 
 def fit_correlative_knee(kin: KneeKinematics, joint: str | None = None) -> CorrelativeKnee:
-    """Seed eq. (1) by multiple linear regression on the free-knee frames (`kinematics.mechanisms.correlative.fit_law`)."""
+    """Seed eq. (1) by multiple linear regression on the free-knee frames (`kinematics.mechanisms.correlative_fit.fit_law`)."""
     law = fit_law(kin.rotations, kin.translations, knee_rotations(kin.side), knee_translations(kin.side),
                   groups=kin.groups, joint=joint or f"knee_{kin.side}", source=f"knee_{kin.side} training frames")
     return CorrelativeKnee(kin.side, law)

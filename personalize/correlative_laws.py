@@ -6,7 +6,7 @@ between a joint's rotations a (independent) and its translations y
 
     y_f = C[:, :k] a_f + C[:, k]      minimising  sum_f |y_f - C[:, :k] a_f - C[:, k]|^2
 
-(`kinematics.mechanisms.correlative.fit_law`), from OpenSim ``.mot`` / ``.sto``
+(`kinematics.mechanisms.correlative_fit.fit_law`), from OpenSim ``.mot`` / ``.sto``
 files (e.g. IK with a free joint).  Angles are converted to radians on reading
 (``inDegrees=yes``); slopes are in m/rad, constants in m, in the parent frame
 of the joint as the input kinematics define it.  The held-out error leaves one
@@ -38,10 +38,11 @@ from typing import Sequence
 import numpy as np
 
 from kinematics.io.storage import Table
-from kinematics.mechanisms.correlative import CorrelativeLaw, TextTable
+from kinematics.mechanisms.correlative import CorrelativeLaw
+from personalize.presentation.correlative_tables import TextTable, fit_table
 from lowerlimb.errors import InputError
 
-__all__ = ["JointLawFit", "default_columns", "fit_joint_law", "fit_table", "format_number", "law_document",
+__all__ = ["JointLawFit", "default_columns", "fit_joint_law", "law_document",
            "read_kinematics", "write_joint_law"]
 
 ROTATIONS = ("flexion", "adduction", "rotation")
@@ -85,11 +86,6 @@ def _trial_labels(paths: Sequence[Path]) -> list[str]:
             k += 1
         labels.append(lab)
     return labels
-
-
-def format_number(x, scale: float = 1.0, digits: int = 3) -> str:
-    """``x * scale`` with `digits` decimals; ``-`` for None or non-finite values."""
-    return "-" if x is None or not np.isfinite(x) else f"{x * scale:.{digits}f}"
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,7 +149,7 @@ def fit_joint_law(kinematics: Sequence[str | os.PathLike], *, joint: str = "knee
         `folds`, missing columns or file types, or data that cannot determine the law.
     """
     from kinematics.io.storage import guess_rotational
-    from kinematics.mechanisms.correlative import fit_law, fit_laws_by_group
+    from kinematics.mechanisms.correlative_fit import fit_law, fit_laws_by_group
 
     if not kinematics:
         raise InputError("KINEMATICS", "no kinematics file given")
@@ -207,27 +203,9 @@ def law_document(fit: JointLawFit) -> dict:
     return doc
 
 
-def fit_table(laws: dict[str, CorrelativeLaw]) -> TextTable:
-    """Fit statistics per law and dependent (lengths in mm, angles in rad)."""
-    rows = []
-    for name, law in laws.items():
-        f = law.fit
-        for d, dn in enumerate(law.dependent):
-            s = 1e3 if law.dependent_units[d] == "m" else 1.0
-            u = "mm" if s == 1e3 else law.dependent_units[d]
-            loto = None if f.loto_rms is None else f.loto_rms[d]
-            rows.append((name, dn, u, format_number(f.r2[d], 1, 4), format_number(f.rms[d], s),
-                         format_number(f.max_abs[d], s), "yes" if f.seed_criterion[d] else "no",
-                         format_number(loto, s), str(f.n_frames), f"{f.condition:.3g}"))
-    header = ("law", "dependent", "unit", "R2", "rms", "max_abs", "seed criterion", "held-out rms",
-              "frames", "condition")
-    return TextTable(header, tuple(rows), "Fit statistics (seed criterion: max|MC - E| < min|E|; held-out: "
-                                          "leave-one-trial-out, or contiguous blocks with --folds)")
-
-
 def _tables(fit: JointLawFit) -> tuple[TextTable, TextTable, TextTable]:
     """Seed Table 1 (coefficients) and Table 2 (deviation) forms, and the fit statistics."""
-    from kinematics.mechanisms.correlative import coefficient_table, deviation_table
+    from personalize.presentation.correlative_tables import coefficient_table, deviation_table
 
     law, trial_laws, X, Y, groups = fit.law, fit.trial_laws, fit.independent, fit.dependent, fit.groups
     by_trial = bool(trial_laws)
@@ -250,7 +228,8 @@ def write_joint_law(fit: JointLawFit, out: str | os.PathLike) -> Path:
 
     Check ``out`` first with `personalize.outputs.check_output_dir` (an existing folder is replaced).
     """
-    from kinematics.mechanisms.correlative import json_text, plot_deviation
+    from lowerlimb.json_format import json_text
+    from personalize.presentation.correlative_tables import plot_deviation
     from lowerlimb.atomic import inside
 
     from .outputs import replaced_dir

@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from kinematics.mechanisms.correlative import CorrelativeLaw, fit_law
+from kinematics.mechanisms.correlative import CorrelativeLaw
+from kinematics.mechanisms.correlative_fit import fit_law
 from kinematics.io.storage import read_sto, write_mot
 from personalize.cli import main
 

@@ -12,8 +12,10 @@ from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 from scipy.special import erf
 
-from kinematics.mechanisms.correlative import (CorrelativeLaw, coefficient_table, deviation_table, fit_law, fit_laws_by_group,
-                                    knee_landmark_frame, plot_deviation, scale_factor, transfer_law)
+from kinematics.mechanisms.correlative import CorrelativeLaw
+from kinematics.mechanisms.correlative_fit import fit_law, fit_laws_by_group
+from kinematics.mechanisms.law_transfer import knee_landmark_frame, scale_factor, transfer_law
+from personalize.presentation.correlative_tables import coefficient_table, deviation_table, plot_deviation
 from lowerlimb.errors import FitError, InputError
 
 IND = ("knee_flexion_r", "knee_adduction_r", "knee_rotation_r")

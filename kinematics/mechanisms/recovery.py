@@ -22,7 +22,7 @@ All are recovered without prior knowledge of axis directions: body poses come
 from the markers (Kabsch, `scipy.spatial.transform.Rotation.align_vectors`),
 relative rotations give the axes (principal direction of the incremental
 rotation vectors) and unwrapped angles, and the laws are fitted by
-`kinematics.mechanisms.correlative.fit_law`.  Positions in metres, angles in radians.
+`kinematics.mechanisms.correlative_fit.fit_law`.  Positions in metres, angles in radians.
 """
 from __future__ import annotations
 
@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinematics.mechanisms.correlative import CorrelativeLaw, fit_law
+from kinematics.mechanisms.correlative import CorrelativeLaw
+from kinematics.mechanisms.correlative_fit import fit_law
 from lowerlimb.errors import FitError, InputError
 from kinematics.algorithms.functional import relative_pose
 

@@ -32,7 +32,7 @@ def _print_summary(fit) -> None:
     from rich.console import Console
     from rich.table import Table as RichTable
 
-    from ..correlative_laws import format_number as fmt
+    from ..presentation.correlative_tables import format_number as fmt
 
     law = fit.law
     rt = RichTable(title=f"{fit.joint} law over {len(fit.labels)} trial(s), {law.fit.n_frames} frames")
@@ -63,7 +63,8 @@ def register(app: typer.Typer) -> None:
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
     ) -> None:
         """Correlative joint law (Pronost 2010): translations as linear functions of the rotations."""
-        from ..correlative_laws import fit_joint_law, format_number, law_document, write_joint_law
+        from ..correlative_laws import fit_joint_law, law_document, write_joint_law
+        from ..presentation.correlative_tables import format_number
         from ..outputs import check_output_dir
 
         ind, dep = _names(independent, "--independent"), _names(dependent, "--dependent")
