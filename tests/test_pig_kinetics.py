@@ -102,7 +102,8 @@ def test_unloaded_standing_foot_gives_nan_not_a_swing_moment():
 @pytest.fixture(scope="module")
 def nexus(shared_data):
     from kinematics.io.c3d import read_c3d, read_c3d_outputs
-    from kinematics.io.forceplates import assign_feet, read_force_plates
+    from kinematics.gait.plate_contacts import assign_feet
+    from kinematics.io.forceplates import read_force_plates
     from kinematics.gait.pig import plug_in_gait, static_foot_offsets
     from kinematics.gait.pig_kinetics import ground_reactions
     from kinematics.gait.subject import read_vsk
@@ -158,3 +159,32 @@ def test_bad_inputs_are_refused():
     plates = SimpleNamespace(n_frames=F * 9, source="trial.c3d")  # plates left at the analog rate
     with pytest.raises(InputError, match="trial.c3d: force plates have 180 frames, the markers 20"):
         ground_reactions(plates, [], F)
+
+
+def test_foot_on_two_plates_keeps_the_summed_wrench():
+    """Two plates under one foot: force, and moment about any point, are the sums of the plates' wrenches."""
+    from types import SimpleNamespace
+
+    from kinematics.gait.pig_kinetics import ground_reactions
+
+    n = 5
+    rng = np.random.default_rng(3)
+    plates = []
+    for k in range(2):
+        force = np.column_stack([rng.normal(0, 20, n), rng.normal(0, 20, n), 300 + 100 * k + rng.normal(0, 5, n)])
+        cop = np.column_stack([0.5 * k + rng.normal(0, 0.02, n), rng.normal(0, 0.02, n), np.zeros(n)])
+        free = np.column_stack([np.zeros(n), np.zeros(n), rng.normal(0, 2, n)])
+        plates.append(SimpleNamespace(loaded=np.ones(n, bool), force=force, cop=cop, free_moment=free,
+                                      normal=np.array([0.0, 0.0, 1.0])))
+    fp = type("Plates", (), {"n_frames": n, "source": "two.c3d", "__getitem__": lambda self, i: plates[i]})()
+    contacts = [SimpleNamespace(foot="R", usable=True, plate=k, start=0, stop=n, describe=lambda: "") for k in range(2)]
+    grf, notes = ground_reactions(fp, contacts, n)
+    g = grf["R"]
+    np.testing.assert_allclose(g.force, plates[0].force + plates[1].force, atol=1e-12)
+    q = np.array([0.2, -0.3, 0.9])   # moment about an arbitrary point (a joint centre)
+    want = sum(np.cross(p.cop - q, p.force) + p.free_moment for p in plates)
+    np.testing.assert_allclose(np.cross(g.cop - q, g.force) + g.free_moment, want, atol=1e-9)
+    # the combined centre of pressure lies between the plates' (normal-force weighted)
+    assert np.all((g.cop[:, 0] > plates[0].cop[:, 0]) & (g.cop[:, 0] < plates[1].cop[:, 0]))
+    assert any("two plates" in m for m in notes)
+    assert np.all(grf["L"].force == 0) and not grf["L"].loaded.any()

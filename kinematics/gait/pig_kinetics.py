@@ -166,7 +166,7 @@ def ground_reactions(plates, contacts, n_frames: int) -> tuple[dict, list[str]]:
     Parameters
     ----------
     plates : kinematics.io.forceplates.ForcePlates, sampled at the marker frames
-    contacts : list of kinematics.io.forceplates.PlateContact (from `assign_feet`)
+    contacts : list of kinematics.gait.plate_contacts.PlateContact (from `assign_feet`)
     n_frames : int, number of marker frames
 
     Returns
@@ -180,8 +180,9 @@ def ground_reactions(plates, contacts, n_frames: int) -> tuple[dict, list[str]]:
     grf, notes = {}, []
     for side in "RL":
         f = np.zeros((n_frames, 3))
-        cop = np.full((n_frames, 3), np.nan)
-        T = np.zeros((n_frames, 3))
+        M = np.zeros((n_frames, 3))        # moment about the lab origin, summed over plates
+        wcop = np.zeros((n_frames, 3))     # centres of pressure weighted by each plate's normal force
+        w = np.zeros(n_frames)
         loaded = np.zeros(n_frames, bool)
         used = []
         for c in contacts:
@@ -193,13 +194,23 @@ def ground_reactions(plates, contacts, n_frames: int) -> tuple[dict, list[str]]:
             p = plates[c.plate]
             sl = slice(c.start, c.stop)
             if loaded[sl].any():
-                notes.append(f"{side} foot on two plates at once (plate {c.plate + 1}): its ground reaction is unknown")
-            ok = p.loaded[sl]
-            f[sl] += np.where(ok[:, None], p.force[sl], 0.0)
-            cop[sl] = np.where(ok[:, None], p.cop[sl], cop[sl])
-            T[sl] += np.where(ok[:, None], p.free_moment[sl], 0.0)
+                notes.append(f"{side} foot on two plates at once (plate {c.plate + 1}): their wrenches are summed")
+            ok = p.loaded[sl] & np.all(np.isfinite(p.cop[sl]), axis=1)
+            fi = np.where(ok[:, None], p.force[sl], 0.0)
+            ci = np.where(ok[:, None], p.cop[sl], 0.0)
+            f[sl] += fi
+            M[sl] += np.cross(ci, fi) + np.where(ok[:, None], p.free_moment[sl], 0.0)
+            wi = np.abs(fi @ p.normal)
+            wcop[sl] += wi[:, None] * ci
+            w[sl] += wi
             loaded[sl] |= ok
             used.append((c.plate, c.start, c.stop))
+        # one plate: cop and free moment as measured; two: the force-weighted cop with the torque that keeps
+        # the summed wrench exact (M = cop x F + T)
+        cop = np.full((n_frames, 3), np.nan)
+        cop[loaded] = wcop[loaded] / w[loaded, None]
+        T = np.zeros((n_frames, 3))
+        T[loaded] = M[loaded] - np.cross(cop[loaded], f[loaded])
         grf[side] = GroundReaction(f, cop, T, loaded, tuple(used))
     for c in contacts:
         if c.foot is None:
