@@ -120,7 +120,7 @@ def reconstruct_legs(trial: str | os.PathLike, *, method: str, subject: str | os
     from kinematics.gait.subject import read_subject, validate_static
     from kinematics.io.trials import read_trial
 
-    from .pipeline import check_same_subject, check_trial_legs
+    from .pipeline.inputs import check_same_subject, check_trial_legs
 
     if method not in METHODS:
         raise InputError("--method", f"{method!r} is not one of {', '.join(METHODS)}")
@@ -187,7 +187,7 @@ def write_leg_reconstruction(result: LegReconstruction, out: str | os.PathLike, 
     """
     from kinematics.gait.reconstruction import ANGLE_COLUMNS, CENTRE_MARKERS
     from kinematics.io.storage import write_mot, write_trc
-    from kinematics.mechanisms.correlative import json_text
+    from lowerlimb.json_format import json_text
     from lowerlimb.atomic import inside, write_text
 
     from .outputs import replaced_dir

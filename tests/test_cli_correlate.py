@@ -145,3 +145,19 @@ def test_correlate_blocked_folds(trials, tmp_path, capsys):
     assert np.all(np.asarray(raw["fit"]["loto_rms"]) > 0.9 * np.asarray(raw["fit"]["rms"]))
     assert main(["correlate", str(trials[0]), "--folds", "1", "--out", str(tmp_path / "f1"), "--quiet"]) == 2
     assert "--folds" in capsys.readouterr().err
+
+
+def test_joint_law_from_a_script(trials, tmp_path):
+    """The library form of the command: fit_joint_law recovers the law, write_joint_law writes it losslessly."""
+    from personalize.correlative_laws import fit_joint_law, law_document, write_joint_law
+
+    fit = fit_joint_law(trials, joint="knee_r", folds=4)
+    assert fit.labels == ("crouch0", "crouch1", "crouch2") and fit.frames == dict.fromkeys(fit.labels, 120)
+    assert fit.independent.shape == (360, 3) and not fit.trial_laws
+    assert (np.abs(fit.law.coefficients - TRUE_C) / np.abs(TRUE_C)).max() < 0.02
+    assert law_document(fit)["data"]["cross_validation"] == "4 contiguous blocks per trial"
+    out = write_joint_law(fit, tmp_path / "law")
+    assert sorted(p.name for p in out.iterdir()) == ["coefficients.csv", "deviation.csv", "deviation.png", "fit.csv",
+                                                     "law.json", "tables.md"]
+    np.testing.assert_allclose(CorrelativeLaw.from_json(out / "law.json").coefficients, fit.law.coefficients,
+                               rtol=0, atol=1e-15)

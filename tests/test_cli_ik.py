@@ -110,3 +110,23 @@ def test_cli_ik_with_opensim_setup(shared_data, tmp_path):
     assert np.abs(mot.values[:, j] - ref.values[k, ref.columns.index("knee_angle_r")]).max() < 3.0
     err = read_sto(tmp_path / "walk1_ik_marker_errors.sto")
     assert 0.01 < err.values[:, 1].mean() < 0.04
+
+
+def test_trial_ik_from_a_script(leg_files, tmp_path):
+    """The library form of the command: TrialIK holds the solution, write_trial_ik writes both files."""
+    from lowerlimb.errors import InputError
+    from personalize.inverse_kinematics import trial_inverse_kinematics, write_trial_ik
+
+    m, model_path, t, q, x, d = leg_files
+    trc = _write(tmp_path, "walk.trc", m, x, t)
+    res = trial_inverse_kinematics(model_path, trc, end=0.1)
+    keep = t <= 0.1 + 1e-9
+    assert res.solved.sum() == keep.sum() and not res.underdetermined.any() and res.warnings == ()
+    rot = m.rotational
+    np.testing.assert_allclose(res.ik.q[:, rot], q[keep][:, rot], atol=1e-5)
+    assert res.rms_max < 1e-5 and res.coordinates == tuple(m.coordinate_names)
+    mot, err = write_trial_ik(res, tmp_path / "w.mot")
+    assert err == tmp_path / "w_marker_errors.sto"
+    np.testing.assert_allclose(np.radians(read_mot(mot).values[:, rot]), res.ik.q[:, rot], atol=1e-6)
+    with pytest.raises(InputError, match="clamped, all or none"):
+        trial_inverse_kinematics(model_path, trc, limits="some")

@@ -97,3 +97,28 @@ def test_usage_errors(lab, tmp_path, capsys):
     assert main(["markers", str(lab / "nope.c3d"), "--method", "pig", "--subject", str(lab / "subject.json"),
                  "--out", str(tmp_path / "o")]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_leg_reconstruction_from_a_script(lab, tmp_path):
+    """The library form of the command (reconstruct_legs, leg_report) and the trial reader it uses."""
+    from kinematics.io.storage import write_trc
+    from kinematics.io.trials import read_trial
+    from lowerlimb.errors import InputError
+    from personalize.leg_reconstruction import leg_report, reconstruct_legs
+
+    res = reconstruct_legs(lab / "gait_01.c3d", method="pig", subject=lab / "subject.json", static=lab / "static.c3d")
+    truth = read_mot(lab / "truth" / "gait_01_angles.mot")
+    j = truth.columns.index("knee_flexion_r")
+    e = np.degrees(res.reconstruction.angle_table()[:, j]) - truth.values[:, j]
+    assert np.sqrt(np.nanmean(e ** 2)) < 6.0
+    rep = leg_report(res)
+    assert rep["valid_frames"] == res.valid_frames < res.frames == rep["frames"]     # the long gap stays NaN
+    assert any(not g["filled"] for g in rep["gaps"]) and json.loads(json.dumps(rep)) == rep
+    tr = read_trial(lab / "gait_01.c3d")
+    write_trc(tmp_path / "gait.trc", tr)
+    back = read_trial(tmp_path / "gait.trc")
+    assert back.names == tr.names
+    np.testing.assert_allclose(back.positions, tr.positions, atol=1e-5)
+    (tmp_path / "gait.txt").write_text("x")
+    with pytest.raises(InputError, match="unsupported marker file type '.txt'"):
+        read_trial(tmp_path / "gait.txt")

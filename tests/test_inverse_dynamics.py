@@ -395,3 +395,23 @@ def test_cli_kinematics_with_missing_frames_refused(shared_data, tmp_path, capsy
     err = capsys.readouterr().err
     assert str(gap) in err and "uniformly sampled" in err and "0.7833 s" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_joint_dynamics_from_a_script(cli_loads, shared_data):
+    """The library form of the command: JointDynamics holds what the command writes."""
+    import json
+
+    from kinematics.io.storage import read_sto
+    from personalize.joint_dynamics import dynamics_report, trial_joint_dynamics
+
+    d = shared_data / GAIT
+    dyn = trial_joint_dynamics(d / "subject01_simbody.osim", d / "subject01_walk1_ik.mot", start=0.5, end=1.6,
+                               loads=(d / "subject01_walk1_grf.mot", d / "subject01_walk1_grf.xml"))
+    got = read_sto(cli_loads / "inverse_dynamics.sto")
+    assert not dyn.kinematics_only and dyn.cutoff == 6.0 and dyn.load_cutoff is None
+    np.testing.assert_allclose(dyn.result.tau, got.values, rtol=0, atol=1e-6 * np.abs(got.values).max())
+    rep = json.loads((cli_loads / "report.json").read_text())
+    assert {k: v for k, v in dynamics_report(dyn).items() if k not in ("model", "kinematics", "loads")} == \
+        {k: v for k, v in rep.items() if k not in ("model", "kinematics", "loads")}
+    with pytest.raises(InputError, match="exactly one source"):
+        trial_joint_dynamics(d / "subject01_simbody.osim", d / "subject01_walk1_ik.mot")

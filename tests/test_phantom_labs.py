@@ -54,3 +54,25 @@ def test_trials_written_in_the_lab_axes(reference, tmp_path, up, walk):
     assert entries["motion"]["lab"]["up"] == lab.up.tolist()
     assert not any(t["kind"] == "functional" for t in entries["motion"]["trials"])
     json.dumps(entries)
+
+
+def test_phantom_from_options(tmp_path):
+    """The library form of ``personalize phantom``: options -> build_phantom -> write_phantom, progress step by step."""
+    from lowerlimb.errors import InputError
+    from personalize.evaluation.phantom_builder import PhantomOptions, build_phantom, noise_level, write_phantom
+
+    subject = build_phantom(PhantomOptions(seed=3, side="r", bones=("patella_r",), motion=False, voxel_mm=(2, 2, 2),
+                                           noise="low"))
+    assert subject.steps == 3 and subject.bones == ("patella_r",) and subject.noise == noise_level("low") == 0.25
+    said: list[str] = []
+    out = write_phantom(subject, tmp_path / "ph", progress=said.append)
+    assert said == ["rasterising patella_r", "meshing patella_r"] and len(said) <= subject.steps
+    assert {p.name for p in out.iterdir()} == {"labels.nii.gz", "label_map.json", "meshes", "truth.json"}
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["params"]["seed"] == 3 and "femur_l" not in truth["landmarks"]["bones"]
+    assert [p.name for p in (out / "meshes").iterdir()] == ["patella_r.ply"]
+    for bad, message in ((PhantomOptions(side="r"), "motion trials need both legs"),
+                         (PhantomOptions(noise="loud"), "not a number in 0..1"),
+                         (PhantomOptions(marker_set="ior"), "Plug-in-Gait set")):
+        with pytest.raises(InputError, match=message):
+            build_phantom(bad)

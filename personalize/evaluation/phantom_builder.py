@@ -118,7 +118,7 @@ class PhantomSubject:
 
     @property
     def steps(self) -> Optional[int]:
-        """Progress messages `write_phantom` sends (None: not known in advance)."""
+        """About how many progress messages `write_phantom` sends (two per bone and one more; None: not known)."""
         return None if self.options.real else 2 * len(self.bones) + 1
 
     def summary(self) -> str:
@@ -206,7 +206,7 @@ def write_phantom(subject: PhantomSubject, out: str | os.PathLike,
     """Write the subject folder into ``out``, replacing it whole when complete.
 
     Check ``out`` first with `personalize.outputs.check_output_dir` (an existing folder is replaced).
-    `progress` is called with a message at each step (`PhantomSubject.steps` of them when known).
+    `progress` is called with a message at each step (about `PhantomSubject.steps` of them).
     """
     from personalize.outputs import replaced_dir
 
