@@ -61,7 +61,8 @@ def mocap_pig(data: Path, out: Path) -> dict:
         fit_foot_parameters,
         sagittal_stance,
     )
-    from kinematics.io.forceplates import assign_feet, read_force_plates
+    from kinematics.gait.plate_contacts import assign_feet
+    from kinematics.io.forceplates import read_force_plates
     from kinematics.gait.gait_cycles import (
         c3d_events,
         cycle_statistics,

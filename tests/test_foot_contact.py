@@ -108,7 +108,8 @@ def test_mocap_pig_stance_fit(shared_data):
     RMS hind-foot angle error under 5 deg (the seed's acceptable variation; measured 3.4 deg) and well under
     a constant angle's (8.1 deg)."""
     from kinematics.io.c3d import read_c3d
-    from kinematics.io.forceplates import assign_feet, read_force_plates
+    from kinematics.gait.plate_contacts import assign_feet
+    from kinematics.io.forceplates import read_force_plates
     from kinematics.gait.pig import plug_in_gait, static_foot_offsets
     from kinematics.gait.subject import read_vsk
 

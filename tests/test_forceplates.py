@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from lowerlimb.errors import InputError
-from kinematics.io.forceplates import assign_feet, box_average, read_force_plates
+from kinematics.gait.plate_contacts import assign_feet
+from kinematics.io.forceplates import box_average, read_force_plates
 
 MASS_KG = 85.0  # PROCESSING:Bodymass of Movement_trial.c3d
 

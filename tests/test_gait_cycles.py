@@ -131,7 +131,8 @@ def test_mocap_pig_strikes_from_plates_and_kinematics(shared_data):
     """Stair descent over four plates: plate events exact; Zeni's (level-walking) kinematic strikes come
     0.09-0.13 s early (the fore foot lands first on a step), toe offs 0.04 s early; no EVENT group stored."""
     from kinematics.io.c3d import read_c3d
-    from kinematics.io.forceplates import assign_feet, read_force_plates
+    from kinematics.gait.plate_contacts import assign_feet
+    from kinematics.io.forceplates import read_force_plates
     from kinematics.gait.gait_cycles import events_from_plates
 
     path = shared_data / "mocap_pig" / "Movement_trial.c3d"

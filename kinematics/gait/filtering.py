@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kinematics.io.markers import true_runs
 from lowerlimb.errors import InputError
 
 __all__ = ["DEFAULT_CUTOFF_HZ", "ResidualAnalysis", "choose_cutoff", "corrected_cutoff", "derivatives",
@@ -219,9 +220,10 @@ def _candidates(cutoffs, rate):
     return fc
 
 
-def _residuals(x2: np.ndarray, rate: float, fc: np.ndarray, order: int) -> np.ndarray:
+def _residuals(x2: np.ndarray, rate: float, fc: np.ndarray, order: int, method: str = "winter") -> np.ndarray:
     """Per candidate cut-off and channel, the RMS over samples of x - lowpass(x): (K, C)."""
-    return np.stack([np.sqrt(np.mean((x2 - lowpass(x2, rate, f, order=order)) ** 2, axis=0)) for f in fc])
+    return np.stack([np.sqrt(np.mean((x2 - lowpass(x2, rate, f, order=order, method=method)) ** 2, axis=0))
+                     for f in fc])
 
 
 def _pick(fc: np.ndarray, res: np.ndarray, fit_from) -> ResidualAnalysis:
@@ -243,11 +245,13 @@ def _pick(fc: np.ndarray, res: np.ndarray, fit_from) -> ResidualAnalysis:
     return ResidualAnalysis(fc, res, noise, chosen)
 
 
-def choose_cutoff(x, rate: float, cutoffs=None) -> tuple[float, np.ndarray]:
+def choose_cutoff(x, rate: float, cutoffs=None, *, method: str = "winter") -> tuple[float, np.ndarray]:
     """One cut-off for several channels: the median of their residual-analysis cut-offs.
 
     Channels that do not move (range under 1e-9) are skipped.  Returns the
     chosen cut-off (Hz) and the per-channel cut-offs (NaN for skipped ones).
+    The residuals are those of the filter that will be applied (`method` of
+    `lowpass`): a cut-off chosen with one filter means another with another.
     """
     x = np.asarray(x, float)
     x2 = x.reshape(x.shape[0], -1)
@@ -256,7 +260,7 @@ def choose_cutoff(x, rate: float, cutoffs=None) -> tuple[float, np.ndarray]:
     if not moving.any():
         raise InputError("cutoff", "no channel moves: a residual analysis cannot choose a cut-off")
     fc = _candidates(cutoffs, rate)
-    res = _residuals(x2[:, moving], rate, fc, 2)  # all channels filtered together per candidate
+    res = _residuals(x2[:, moving], rate, fc, 2, method)  # all channels filtered together per candidate
     per[moving] = [_pick(fc, res[:, j], None).cutoff for j in range(res.shape[1])]
     return float(np.nanmedian(per)), per
 
@@ -272,8 +276,7 @@ def lowpass_runs(x, rate: float, cutoff: float = DEFAULT_CUTOFF_HZ, *, order: in
     x = np.asarray(x, float)
     ok = np.all(np.isfinite(x.reshape(x.shape[0], -1)), axis=1)
     out = np.full_like(x, np.nan)
-    d = np.diff(np.concatenate([[0], ok.astype(np.int8), [0]]))
-    for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
+    for a, b in true_runs(ok):
         if b - a >= min_samples:
             out[a:b] = lowpass(x[a:b], rate, cutoff, order=order, method=method)
     return out

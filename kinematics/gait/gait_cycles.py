@@ -113,7 +113,7 @@ def events_from_plates(plates, contacts) -> list[GaitEvent]:
     Parameters
     ----------
     plates : kinematics.io.forceplates.ForcePlates (at the marker frames)
-    contacts : list of kinematics.io.forceplates.PlateContact
+    contacts : list of kinematics.gait.plate_contacts.PlateContact
 
     Returns
     -------

@@ -138,8 +138,8 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
     method : {"opensim", "winter"}
         `kinematics.gait.filtering.lowpass` method.
     load_cutoff : float or None, Hz
-        Low-pass the loads' force and moment about the ground origin (same
-        zero-lag filter) before use; None keeps them as given (OpenSim's tool).
+        Low-pass the loads' force and moment about the ground origin (the
+        coordinates' zero-lag filter, `method`) before use; None keeps them as given (OpenSim's tool).
     start, end : float, s
         Output window (the whole filtered trial is used for the splines).
     exclude : sequence of (t0, t1, reason)
@@ -216,8 +216,9 @@ def trial_inverse_dynamics(model: Model, time, q, loads: Sequence[ExternalLoad] 
             M = np.cross(P, F) + T  # moment about the ground origin: continuous through contact changes
             if load_cutoff is not None and load_cutoff > 0:
                 lr = 1.0 / np.mean(np.diff(ld.time))
-                F = lowpass(F, lr, load_cutoff, source=ld.name)
-                M = lowpass(M, lr, load_cutoff, source=ld.name)
+                # the coordinates' filter: kinematics and loads filtered alike keep their moments consistent
+                F = lowpass(F, lr, load_cutoff, method=method, source=ld.name)
+                M = lowpass(M, lr, load_cutoff, method=method, source=ld.name)
             FM = _interp_cubic(ld.time, np.hstack([F, M]), t)
             Fk, Mk = FM[:, :3], FM[:, 3:]
             outside = (t < ld.time[0] - 1e-9) | (t > ld.time[-1] + 1e-9)
@@ -303,7 +304,7 @@ class TrialLoads:
     Attributes
     ----------
     loads : tuple of ExternalLoad (one per foot that stood on a plate)
-    contacts : tuple of PlateContact (`kinematics.io.forceplates.assign_feet`)
+    contacts : tuple of PlateContact (`kinematics.gait.plate_contacts.assign_feet`)
     exclude : tuple of (t0, t1, reason)
         Loaded intervals that cannot be applied to one foot (two feet, CoP
         outside the plate, no foot found): pass to `trial_inverse_dynamics`.
@@ -329,7 +330,8 @@ def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict 
     """
     from kinematics.io.c3d import read_c3d
     from kinematics.io.external_loads import loads_from_plates
-    from kinematics.io.forceplates import assign_feet, read_force_plates
+    from kinematics.gait.plate_contacts import assign_feet
+    from kinematics.io.forceplates import read_force_plates
 
     plates = read_force_plates(path, threshold=threshold, at="points")
     notes = list(plates.notes)
@@ -364,9 +366,10 @@ def _stance_off_plates(markers, contacts, side: str, max_speed: float = 0.5, min
     has a marker at rest.  Intervals shorter than `min_s`, and the `margin_s`
     next to the foot's plate contacts (strike and push-off), are ignored.
     """
-    from kinematics.io.forceplates import _foot_markers, _runs
+    from kinematics.gait.plate_contacts import foot_markers
+    from kinematics.io.markers import true_runs
 
-    names = _foot_markers(markers, side)
+    names = foot_markers(markers, side)
     if "heel" not in names:
         return []
     t = markers.time
@@ -382,7 +385,7 @@ def _stance_off_plates(markers, contacts, side: str, max_speed: float = 0.5, min
         if c.usable and c.foot == side:
             covered |= (t >= c.start_time - margin_s) & (t <= c.end_time + margin_s)
     out = []
-    for a, b in _runs(stance & ~covered):
+    for a, b in true_runs(stance & ~covered):
         if t[b - 1] - t[a] >= min_s:
             out.append((float(t[a]), float(t[b - 1])))
     return out

@@ -31,7 +31,7 @@ import numpy as np
 
 from lowerlimb.atomic import atomic_path
 from lowerlimb.errors import InputError
-from kinematics.io.markers import MarkerTrial
+from kinematics.io.markers import MarkerTrial, true_runs
 
 __all__ = ["read_c3d", "read_c3d_outputs", "write_c3d", "fill_gaps", "C3DOutputs", "Gap", "GapReport",
            "MAX_COORDINATE_M"]
@@ -522,12 +522,6 @@ class GapReport:
         return "\n".join(lines)
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """(start, stop) index pairs of the True runs of a 1-D mask, stop exclusive."""
-    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
-
-
 def fill_gaps(trial: MarkerTrial, max_gap_s: float) -> tuple[MarkerTrial, GapReport]:
     """Fill short interior marker gaps by cubic-spline interpolation.
 
@@ -554,7 +548,7 @@ def fill_gaps(trial: MarkerTrial, max_gap_s: float) -> tuple[MarkerTrial, GapRep
         missing = ~np.all(np.isfinite(pos[:, j]), axis=1)
         if not missing.any():
             continue
-        runs = _runs(missing)
+        runs = true_runs(missing)
         valid = ~missing
         spline = CubicSpline(t[valid], pos[valid, j], axis=0) if valid.sum() >= 4 else None
         for a, b in runs:

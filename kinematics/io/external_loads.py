@@ -266,7 +266,7 @@ def _xml_escape(s: str) -> str:
 
 
 def loads_from_plates(plates, contacts, bodies=None, rotation=LAB_TO_OPENSIM) -> tuple[list[ExternalLoad], list[str]]:
-    """One ExternalLoad per foot from the plates' usable contacts (`kinematics.io.forceplates.assign_feet`).
+    """One ExternalLoad per foot from the plates' usable contacts (`kinematics.gait.plate_contacts.assign_feet`).
 
     Each foot's load is the sum, frame by frame, of the plate wrenches of the
     intervals assigned to it (a foot on two plates at once gets the resultant

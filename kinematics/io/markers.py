@@ -10,6 +10,14 @@ import numpy as np
 
 from lowerlimb.errors import InputError
 
+__all__ = ["MarkerTrial", "true_runs"]
+
+
+def true_runs(mask) -> list[tuple[int, int]]:
+    """(start, stop) index pairs of the True runs of a 1-D mask, stop exclusive (gap-free runs, loaded intervals)."""
+    d = np.diff(np.concatenate([[0], np.asarray(mask).astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
+
 
 @dataclass(frozen=True)
 class MarkerTrial:
