@@ -320,3 +320,24 @@ def test_decimation_keeps_a_closed_accurate_surface(two_bone_volume):
         assert dec[bone].volume == pytest.approx(full[bone].volume, rel=0.01)
         assert surface_distance(m, full[bone].mesh, n=5000)["mean"] < 0.1e-3
         assert len(dec[bone].points) > 0  # clouds were built from the decimated mesh
+
+
+def test_surface_export_from_a_script(tmp_path):
+    """The library form of ``personalize surfaces``: a mm mesh folder exported in mm, summary lengths in metres."""
+    from personalize.surface_export import bone_surface_export, write_surface_export
+
+    src = tmp_path / "in"
+    src.mkdir()
+    trimesh.creation.icosphere(subdivisions=4, radius=20.0).export(src / "patella_r.ply")      # mm
+    export = bone_surface_export(src, points=True)
+    doc = write_surface_export(export, tmp_path / "out")
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["patella_r.ply", "patella_r_points.ply",
+                                                                   "surfaces.json"]
+    assert json.loads((tmp_path / "out" / "surfaces.json").read_text()) == doc
+    entry = doc["bones"]["patella_r"]
+    assert entry["mesh_units"] == "mm" and entry["faces"] == 5120 and entry["watertight"]
+    assert entry["volume_m3"] == pytest.approx(4 / 3 * np.pi * 0.02 ** 3, rel=0.01)
+    np.testing.assert_allclose(entry["bbox_max_m"], [0.02] * 3, atol=1e-9)
+    back = trimesh.load(tmp_path / "out" / "patella_r.ply", process=False)
+    np.testing.assert_allclose(back.vertices * 1e-3, export.surfaces["patella_r"].mesh.vertices, atol=1e-12)
+    assert b"comment units mm" in (tmp_path / "out" / "patella_r.ply").read_bytes()[:200]
