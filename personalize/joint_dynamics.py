@@ -146,12 +146,16 @@ def trial_joint_dynamics(model_path: str | os.PathLike, kinematics: str | os.Pat
     q = tab.select(model.coordinate_names)
     notes: list[str] = []
     per_coordinate = None
+    bad = ~np.all(np.isfinite(q), axis=1)
+    if bad.any():
+        raise InputError(kinematics, f"{int(bad.sum())} frame(s) with non-finite coordinates (first at "
+                                     f"t = {tab.time[np.argmax(bad)]:.4f} s): the IK left them unsolved")
     if fixed is None:
         from kinematics.gait.filtering import choose_cutoff
 
-        fixed, per = choose_cutoff(q, 1.0 / float(np.mean(np.diff(tab.time))))
+        fixed, per = choose_cutoff(q, 1.0 / float(np.mean(np.diff(tab.time))), method=method)
         per_coordinate = {c: (None if not np.isfinite(v) else float(v)) for c, v in zip(model.coordinate_names, per)}
-        notes.append(f"cut-off {fixed:.2f} Hz by Winter's residual analysis (median over the coordinates)")
+        notes.append(f"cut-off {fixed:.2f} Hz by Winter's residual analysis of the {method} filter (median over the coordinates)")
     exclude: tuple = ()
     contacts: tuple = ()
     if loads is not None:

@@ -122,6 +122,10 @@ def test_choose_cutoff_on_real_ik(shared_data):
     assert 4.0 < fc < 12.0
     mtp = [j for j, c in enumerate(tab.columns) if c.startswith("mtp")]
     assert np.isnan(per[mtp]).all() and np.isfinite(np.delete(per, mtp)).all()
+    # the analysis uses the filter it is chosen for: OpenSim's filter is -6 dB at its cut-off (Winter's -3 dB),
+    # so the same residual needs a higher OpenSim cut-off
+    fo, _ = choose_cutoff(tab.values, 60.0, method="opensim")
+    assert fo > 1.03 * fc   # 8.11 vs 7.73 Hz
 
 
 def test_filter_markers_run_by_run(shared_data):
