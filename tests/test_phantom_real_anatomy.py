@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from kinematics.io.marker_sets import preset, read_marker_set
+from kinematics.io.trials import read_trial
 
 
 @pytest.fixture(scope="module")
@@ -26,13 +27,6 @@ def _write(tmp_path, anat, name, **kw):
           **kw}
     truth = write_real_subject(out, anat, **kw)
     return out, truth
-
-
-def _read_trial(path):
-    from kinematics.io.c3d import read_c3d
-    from kinematics.io.storage import read_trc
-
-    return read_c3d(path) if path.suffix == ".c3d" else read_trc(path)
 
 
 def test_mirrored_side_is_the_mirror_image(icl):
@@ -93,7 +87,7 @@ def test_opensim_ik_reproduces_truth_icl_ior_yup(icl, tmp_path, opensim):
             else:
                 assert np.degrees(np.abs(got - np.radians(want))).max() < 0.5, name
     # the trial as written (C3D, mm) is the same marker data
-    st = _read_trial(out / "Static.c3d")
+    st = read_trial(out / "Static.c3d")
     assert st.n_frames == 7 and set(st.names) == set(read_marker_set(out / "markers.json").labels)
 
 
@@ -143,7 +137,7 @@ def _check_written(out, truth, anat, ms_name):
     q = np.column_stack([np.radians(tab.values[:, list(tab.columns).index(c)]) if c in rot
                          else tab.values[:, list(tab.columns).index(c)] for c in model.coordinate_names])
     st = forward_kinematics(model, q[:1])
-    static = _read_trial(next(p for p in out.iterdir() if p.stem.lower() == "static" and p.suffix in (".c3d", ".trc")))
+    static = read_trial(next(p for p in out.iterdir() if p.stem.lower() == "static" and p.suffix in (".c3d", ".trc")))
     for k in static.names:
         mk = model.markers[model.marker_index(k)]
         want = point_positions(model, st, np.array([model.body_index(mk.body)]), mk.offset[None])[0, 0]
@@ -186,7 +180,7 @@ def test_marker_set_lab_and_tissue_written_as_truth(icl, tmp_path, ms_name, lab,
     h_pel = np.mean([static.marker(k)[0] @ up for k in pel])
     h_foot = np.mean([static.marker(k)[0] @ up for k in foot])
     assert 0.75 < h_pel - h_foot < 1.1 and -0.01 < h_foot < 0.12
-    gait = _read_trial(out / f"gait_01.{'trc' if fmt == 'trc' else 'c3d'}")
+    gait = read_trial(out / f"gait_01.{'trc' if fmt == 'trc' else 'c3d'}")
     d = np.nanmean(gait.positions[-1], axis=0) - np.nanmean(gait.positions[0], axis=0)
     assert d @ fwd > 2.0 and abs(d @ up) < 0.05                  # 2.2 s at 1.25 m/s
     if fmt == "both":
