@@ -63,6 +63,9 @@ def test_zeni_events_on_a_synthetic_walk(treadmill):
         np.testing.assert_allclose((strikes - truth[s][0]) % 1.0, 0.0, atol=0.011)  # within a frame
         np.testing.assert_allclose((offs - truth[s][1]) % 1.0, 0.0, atol=0.011)
         cyc = gait_cycles(ev, s)
+        # a missed strike would join two strides into one "cycle": such a pair is left out
+        missed = [e for e in ev if not (e.side == s and e.kind == "strike" and abs(e.time - strikes[1]) < 1e-9)]
+        assert len(gait_cycles(missed, s)) == len(cyc) - 2
         assert all(abs(c.end.time - c.start.time - 1.0) < 0.02 for c in cyc)
         assert all(c.off is not None and abs(c.stance_percent - 60.0) < 2.0 for c in cyc)
 

@@ -258,12 +258,20 @@ def events_from_kinematics(trial: MarkerTrial, *, heel: str = "{s}HEE", toe: str
 
 
 def gait_cycles(events: list[GaitEvent], side: str) -> list[GaitCycle]:
-    """Cycles of `side`: consecutive foot strikes, each with the first toe off between them."""
+    """Cycles of `side`: consecutive foot strikes, each with the first toe off between them.
+
+    A pair of strikes with two toe offs of that foot, or two strikes of the
+    other foot, between them spans more than one stride (a strike was missed,
+    e.g. a foot between two plates): it is not a cycle and is left out.
+    """
     strikes = [e for e in events if e.side == side and e.kind == "strike"]
     offs = [e for e in events if e.side == side and e.kind == "off"]
+    other = [e for e in events if e.side != side and e.kind == "strike"]
     out = []
     for a, b in itertools.pairwise(strikes):
         between = [o for o in offs if a.time < o.time < b.time]
+        if len(between) > 1 or sum(a.time < o.time < b.time for o in other) > 1:
+            continue
         out.append(GaitCycle(side, a, b, between[0] if between else None))
     return out
 
