@@ -34,24 +34,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def cache_subject(d: Path, out_json: Path, say=print) -> dict:
-    from personalize.frames import joints_from_landmarks
-    from personalize.landmarks import detect_landmarks
-    from personalize import pipeline as pl
-    from personalize.pipeline import (_PELVIS, _THIGH, _cluster_pose, estimate_joints, find_inputs,
-                                      truth_in_static_lab)
-    from personalize.surfaces import load_bones
+    from personalize.bone_set import read_bone_set
+    from personalize.evaluation.truth import truth_in_static_lab
+    from personalize.pipeline import estimate_joints, find_inputs, foot, hip, knee, motion
+    from personalize.pipeline.inputs import PELVIS_MARKERS
+    from personalize.pipeline.motion import THIGH_MARKERS, cluster_pose
     from kinematics.algorithms.functional import score
 
     t0 = time.perf_counter()
     inputs = find_inputs(d)
-    surfaces = load_bones(inputs.bones, inputs.label_map, seed=0)
     t1 = time.perf_counter()
-    ls = detect_landmarks(surfaces)
-    joints, dropped = joints_from_landmarks(ls)
-    lm_json = ls.to_json()
-    j_json = {k: v.to_json() for k, v in joints.items()}
+    bones = read_bone_set(inputs.bones, inputs.label_map)
+    joints = {k: j.without_model_error() for k, j in bones.joints.items()}
     t2 = time.perf_counter()
-    est = estimate_joints(inputs, surfaces, lm_json, j_json, lambda m: None, dropped)
+    est = estimate_joints(inputs, bones.surfaces, bones.landmarks, joints, lambda m: None, bones.dropped)
     truth = truth_in_static_lab(inputs)
     t3 = time.perf_counter()
     reg = est.registrations["pelvis"]
@@ -62,31 +58,33 @@ def cache_subject(d: Path, out_json: Path, say=print) -> dict:
            "seconds": {"surfaces": t1 - t0, "landmarks": t2 - t1, "estimates": t3 - t2}, "sides": {},
            # the pipeline constants in force: the cached covariances / sds hold them
            "skin": {k: v.summary() for k, v in est.skin.items()}, "mri_hip_scale": est.mri_hip_scale,
-           "constants": {k: float(getattr(pl, k, 1.0)) for k in ("MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_KNEE_AXIS_SD_SCALE",
-                                                                  "MOTION_KNEE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE",
-                                                                  "MOTION_ANKLE_AXIS_SD_DEG")}}
+           "constants": {"MRI_HIP_COV_SCALE": hip.MRI_HIP_COV_SCALE, "MRI_HIP_COV_SCALE_MEASURED": hip.MRI_HIP_COV_SCALE_MEASURED,
+                         "MRI_KNEE_AXIS_SD_SCALE": knee.MRI_KNEE_AXIS_SD_SCALE,
+                         "MOTION_KNEE_AXIS_SD_DEG": motion.MOTION_KNEE_AXIS_SD_DEG,
+                         "MRI_ANKLE_AXIS_SD_SCALE": foot.MRI_ANKLE_AXIS_SD_SCALE,
+                         "MOTION_ANKLE_AXIS_SD_DEG": motion.MOTION_ANKLE_AXIS_SD_DEG}}
     fun = inputs.trials[inputs.functional]
     poses = {}
     for s in est.centres:
         S = s.upper()
         h = est.centres[s]["hip"]
-        P = _cluster_pose(inputs.static, [fun], _PELVIS + ("SACR",))
-        D = _cluster_pose(inputs.static, [fun], tuple(S + m for m in _THIGH))
+        P = cluster_pose(inputs.static, [fun], PELVIS_MARKERS + ("SACR",))
+        D = cluster_pose(inputs.static, [fun], tuple(S + m for m in THIGH_MARKERS))
         sc = score(P.R, P.t, D.R, D.t)
         poses.update({f"{s}_PR": P.R, f"{s}_Pt": P.t, f"{s}_DR": D.R, f"{s}_Dt": D.t})
         ka = est.axes[s]["knee"]
         aa = est.axes[s]["ankle"]
         rec["sides"][s] = {
-            "hip_scanner": j_json[f"hip_{s}"]["origin"], "hip_scanner_cov": j_json[f"hip_{s}"]["origin_cov"],
-            "mri": [h["mri"][0].tolist(), h["mri"][1].tolist()],
-            "motion": [h["motion"][0].tolist(), h["motion"][1].tolist()],
+            "hip_scanner": joints[f"hip_{s}"].origin.tolist(), "hip_scanner_cov": joints[f"hip_{s}"].origin_cov.tolist(),
+            "mri": [h.mri.mean.tolist(), h.mri.cov.tolist()],
+            "motion": [h.motion.mean.tolist(), h.motion.cov.tolist()],
             "score": [sc.proximal.tolist(), sc.cov_proximal.tolist(), sc.rms, sc.n_frames],
             "truth": truth["centres"][f"hip_{s}"].tolist(),
-            "knee_axis": {"mri": [np.asarray(ka["mri"][0]).tolist(), float(ka["mri"][1])],
-                          "motion": [np.asarray(ka["motion"][0]).tolist(), float(ka["motion"][1])],
+            "knee_axis": {"mri": [np.asarray(ka.mri.direction).tolist(), float(ka.mri.sd_deg)],
+                          "motion": [np.asarray(ka.motion.direction).tolist(), float(ka.motion.sd_deg)],
                           "truth": truth["axes"][f"knee_{s}"].tolist()},
-            "ankle_axis": {"mri": [np.asarray(aa["mri"][0]).tolist(), float(aa["mri"][1])],
-                           "motion": [np.asarray(aa["motion"][0]).tolist(), float(aa["motion"][1])],
+            "ankle_axis": {"mri": [np.asarray(aa.mri.direction).tolist(), float(aa.mri.sd_deg)],
+                           "motion": [np.asarray(aa.motion.direction).tolist(), float(aa.motion.sd_deg)],
                            "truth": truth["axes"][f"ankle_{s}"].tolist()},
         }
     np.savez_compressed(out_json.with_suffix(".npz"), **poses)

@@ -4,7 +4,8 @@ Reads the cache of `benchmarks/fusion_cache.py` (phantom subjects drawn like
 ``personalize validate`` from a TRAINING master seed) and splits it by subject:
 the first ``--train`` subjects calibrate, the others are held out.
 
-Calibration (written into `personalize.pipeline` as documented constants):
+Calibration (written into `personalize.pipeline.hip`, `knee`, `foot`, `motion` as documented constants,
+their numbers recorded in personalize/pipeline/calibration.json):
 
 * which MRI scale is calibrated depends on the cache: phantoms whose label volume carries
   the body/skin label (tissue under the four pelvic markers measured, `personalize.skin`)
@@ -207,11 +208,12 @@ def knee_axis_legs(cache: Path, subjects=None, key: str = "knee_axis") -> list[t
 
 def cache_constants(cache: Path) -> dict:
     """Pipeline constants the cache was written with (its first record's ``constants``, else the current ones)."""
-    from personalize import pipeline as pl
+    from personalize.pipeline.calibration import constants
 
     keys = ("MRI_HIP_COV_SCALE", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG", "MRI_ANKLE_AXIS_SD_SCALE",
             "MOTION_ANKLE_AXIS_SD_DEG")
-    out = {k: float(getattr(pl, k, 1.0)) for k in keys}
+    pl = constants()
+    out = {k: float(pl.get(k, 1.0)) for k in keys}
     files = sorted(glob.glob(str(cache / "phantom_*.json")))
     if files:
         rec = json.loads(Path(files[0]).read_text()).get("constants")
@@ -326,10 +328,11 @@ def main(argv=None) -> dict:
     names = [s["subject"] for s in train]
     test_knee = (knee_axis_legs(a.test_cache) if a.test_cache is not None
                  else knee_axis_legs(a.cache, [s["subject"] for s in test]))
-    from personalize import pipeline as pl
+    from personalize.pipeline.calibration import constants
 
+    pl = constants()
     res["cache_constants"] = cache_constants(a.cache)
-    res["pipeline_constants_claimed"] = {k: float(getattr(pl, k)) for k in (
+    res["pipeline_constants_claimed"] = {k: float(pl[k]) for k in (
         "MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_KNEE_AXIS_SD_SCALE", "MOTION_KNEE_AXIS_SD_DEG",
         "MRI_ANKLE_AXIS_SD_SCALE", "MOTION_ANKLE_AXIS_SD_DEG")}
     pc = res["pipeline_constants_claimed"]

@@ -4,7 +4,7 @@ On TRAINING phantom subjects (``personalize.evaluation.phantom_set.draw_subjects
 training seed 1000; validation seeds are never used): run the pipeline
 (`personalize.pipeline.run_subject`), then IK of the gait and crouch trials on
 the personalised model with free knee translations, fit the flexion law
-t = s * flexion + c per side (`kinematics.mechanisms.correlative.fit_law`) and evaluate it
+t = s * flexion + c per side (`kinematics.mechanisms.correlative_fit.fit_law`) and evaluate it
 at the standing knee flexion.  The phantom's true standing translation is 0,
 so the result is the estimate's error; its rms per axis is
 `personalize.parameter_fusion.MOTION_KNEE_TRANSLATION_SD`.  The fit's own
@@ -13,9 +13,9 @@ so the result is the estimate's error; its rms per axis is
 The same runs give the knee and ankle centre error models: per leg the
 Mahalanobis distance d² = eᵀ C⁻¹ e of each source's centre (MRI registered,
 motion Plug-in-Gait) against the phantom truth in the static lab
-(`personalize.pipeline.truth_in_static_lab`); an honest covariance has
+(`personalize.evaluation.truth.truth_in_static_lab`); an honest covariance has
 mean d² = 3, so mean d² / 3 is the factor the claimed covariance is off by
-(`personalize.pipeline.MRI_CENTRE_COV_SCALE`, `PIG_CENTRE_SD`).
+(`personalize.pipeline.knee.MRI_KNEE_CENTRE_COV_SCALE`, `personalize.pipeline.foot.MRI_ANKLE_CENTRE_COV_SCALE`, `personalize.pipeline.motion.PIG_CENTRE_SD`).
 
 Usage::
 
@@ -37,7 +37,7 @@ sys.path.insert(0, str(REPO))
 
 def standing_translation(subject_dir: Path, out: Path) -> dict:
     from kinematics.io.c3d import read_c3d
-    from kinematics.mechanisms.correlative import fit_law
+    from kinematics.mechanisms.correlative_fit import fit_law
     from kinematics.algorithms.ik import solve_ik
     from kinematics.io.opensim_io import load_osim
     from personalize.pipeline import run_subject
@@ -62,7 +62,8 @@ def standing_translation(subject_dir: Path, out: Path) -> dict:
 
 def centre_calibration(pairs) -> dict:
     """Mean Mahalanobis d² of the MRI, motion and fused knee/ankle centres of the runs (see the module docstring)."""
-    from personalize.pipeline import find_inputs, truth_in_static_lab
+    from personalize.evaluation.truth import truth_in_static_lab
+    from personalize.pipeline import find_inputs
 
     rows = {j: {src: [] for src in ("mri", "motion", "fused")} for j in ("knee", "ankle")}
     for subject_dir, run in pairs:

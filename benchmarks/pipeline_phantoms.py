@@ -1,6 +1,6 @@
 """Benchmark: the single-subject pipeline on a cohort of phantom subjects, errors per source.
 
-For each seed a phantom subject folder is written (`personalize.pipeline.write_phantom_subject`:
+For each seed a phantom subject folder is written (`personalize.evaluation.phantom_subject.write_phantom_subject`:
 label volume + motion trials with soft-tissue artefact), `run_subject` runs on it, and
 the errors against the truth (static-trial lab frame) are collected per side and source.
 
@@ -34,7 +34,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
 
-    from personalize.pipeline import run_subject, write_phantom_subject
+    from personalize.evaluation.phantom_subject import write_phantom_subject
+    from personalize.pipeline import run_subject
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

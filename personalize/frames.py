@@ -47,12 +47,15 @@ expert's hand-built one on real bones.  `joints_document` is the one writer of
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["Joint", "JointFrame", "frame_zy", "frame_yz", "closest_on_line", "joints_from_landmarks", "JOINT_NAMES",
-           "JOINT_BONES", "MODEL_ERROR", "joints_document", "JOINTS_CONVENTION", "without_model_error"]
+from lowerlimb.estimates import Gaussian
+from lowerlimb.geometry import frame_yz, frame_zy, orient, unit
+
+__all__ = ["Joint", "JointFrame", "closest_on_line", "joints_from_landmarks", "JOINT_NAMES",
+           "JOINT_BONES", "MODEL_ERROR", "joints_document", "JOINTS_CONVENTION"]
 
 JOINT_NAMES = ("hip", "knee", "ankle", "subtalar", "mtp")
 
@@ -66,28 +69,9 @@ JOINT_BONES = {
 }
 
 
-def _unit(v) -> np.ndarray:
-    v = np.asarray(v, float)
-    return v / np.linalg.norm(v)
-
-
-def frame_zy(z, y_hint) -> np.ndarray:
-    """Rotation with columns X, Y, Z: Z = unit(z), Y = y_hint made orthogonal to Z, X = Y x Z."""
-    Z = _unit(z)
-    Y = _unit(np.asarray(y_hint, float) - (np.asarray(y_hint, float) @ Z) * Z)
-    return np.column_stack([np.cross(Y, Z), Y, Z])
-
-
-def frame_yz(y, z_hint) -> np.ndarray:
-    """Rotation with columns X, Y, Z: Y = unit(y), Z = z_hint made orthogonal to Y, X = Y x Z."""
-    Y = _unit(y)
-    Z = _unit(np.asarray(z_hint, float) - (np.asarray(z_hint, float) @ Y) * Y)
-    return np.column_stack([np.cross(Y, Z), Y, Z])
-
-
 def closest_on_line(point, direction, q) -> np.ndarray:
     """Point of the line (point, direction) closest to ``q``."""
-    d = _unit(direction)
+    d = unit(direction)
     return np.asarray(point, float) + float((np.asarray(q, float) - point) @ d) * d
 
 
@@ -115,6 +99,13 @@ class JointFrame:
             out["axis_sd_deg"] = round(float(self.axis_sd_deg), 6)
         return out
 
+    @classmethod
+    def from_json(cls, d: dict) -> "JointFrame":
+        if "origin" not in d:
+            return cls(d["body"], missing=d.get("missing"))
+        return cls(d["body"], np.asarray(d["origin"], float), np.asarray(d["rotation"], float),
+                   axis_sd_deg=d.get("axis_sd_deg"))
+
 
 @dataclass(frozen=True)
 class Joint:
@@ -140,6 +131,29 @@ class Joint:
     cross_check: dict | None = None
     model_error: dict | None = None
 
+    @property
+    def centre(self) -> Gaussian:
+        """The joint centre and its stated covariance (input frame, m, m²)."""
+        return Gaussian(self.origin, self.origin_cov)
+
+    @property
+    def axis(self) -> np.ndarray:
+        """(3,) main rotation axis: the Z column of `rotation`."""
+        return np.asarray(self.rotation, float)[:, 2]
+
+    def without_model_error(self) -> "Joint":
+        """This joint with the model-error term taken out of ``origin_cov`` and ``axis_sd_deg``.
+
+        For consumers whose covariance scales were calibrated on phantoms, where
+        the detectors' conventions and the truth's coincide (`personalize.pipeline`):
+        the fit and the spread of disagreeing estimates stay in.
+        """
+        me = self.model_error
+        if not me:
+            return self
+        return replace(self, origin_cov=np.asarray(self.origin_cov, float) - me["centre_sd_m"] ** 2 * np.eye(3),
+                       axis_sd_deg=float(np.sqrt(max(float(self.axis_sd_deg) ** 2 - me["axis_sd_deg"] ** 2, 0.0))))
+
     def to_json(self) -> dict:
         out = {"origin": np.round(self.origin, 9).tolist(), "origin_cov": np.round(self.origin_cov, 12).tolist(),
                "rotation": np.round(self.rotation, 9).tolist(), "axis_sd_deg": round(float(self.axis_sd_deg), 6),
@@ -154,8 +168,22 @@ class Joint:
         if self.cross_check:
             out["cross_check"] = self.cross_check
         if self.model_error:
-            out["model_error"] = self.model_error
+            me = self.model_error
+            out["model_error"] = {**me, "centre_sd_m": round(float(me["centre_sd_m"]), 9),
+                                  "articular_radius_m": round(float(me["articular_radius_m"]), 6)}
         return out
+
+    @classmethod
+    def from_json(cls, name: str, d: dict) -> "Joint":
+        """One joint of a joints.json (`to_json`)."""
+        det = d.get("origin_cov_detection")
+        return cls(name, np.asarray(d["origin"], float), np.asarray(d["origin_cov"], float),
+                   np.asarray(d["rotation"], float), float(d["axis_sd_deg"]), tuple(d.get("flags", ())),
+                   parent=JointFrame.from_json(d["parent"]) if "parent" in d else None,
+                   child=JointFrame.from_json(d["child"]) if "child" in d else None,
+                   origin_cov_detection=None if det is None else np.asarray(det, float),
+                   axis_sd_detection_deg=d.get("axis_sd_detection_deg"), cross_check=d.get("cross_check"),
+                   model_error=d.get("model_error"))
 
 
 JOINTS_CONVENTION = ("rotation columns are the joint frame's X, Y, Z axes; Z is the main rotation axis (hip and knee "
@@ -164,22 +192,6 @@ JOINTS_CONVENTION = ("rotation columns are the joint frame's X, Y, Z axes; Z is 
                      "'origin' / 'rotation' repeat the parent frame (the child frame when the parent is missing). "
                      "origin_cov (m^2) and axis_sd_deg include the fit, the spread of disagreeing estimates and a "
                      "model-error term; *_detection the fit alone")
-
-
-def without_model_error(joint: dict) -> dict:
-    """A joints.json joint with the model-error term taken out of ``origin_cov`` and ``axis_sd_deg``.
-
-    For consumers whose covariance scales were calibrated on phantoms, where
-    the detectors' conventions and the truth's coincide (`personalize.pipeline`):
-    the fit and the spread of disagreeing estimates stay in.
-    """
-    me = joint.get("model_error")
-    if not me:
-        return joint
-    out = dict(joint)
-    out["origin_cov"] = (np.asarray(joint["origin_cov"], float) - me["centre_sd_m"] ** 2 * np.eye(3)).tolist()
-    out["axis_sd_deg"] = float(np.sqrt(max(float(joint["axis_sd_deg"]) ** 2 - me["axis_sd_deg"] ** 2, 0.0)))
-    return out
 
 
 def joints_document(joints: dict, dropped: dict, *, input: str | None = None, frame: str = "input") -> dict:
@@ -245,12 +257,12 @@ def _ankle_centre(tal, tib, fib, s):
     pf = tib.fits.get("plafond") if tib is not None else None
     if pf is not None and rd <= float(pf["radius"]) <= 1.25 * rd and "ankle_axis" in tib.axes:
         ta = tib.axes["ankle_axis"]
-        ec.append(Estimate("tibial_plafond", on(ta.point, unit_(ta.direction)), (0.001 ** 2) * np.eye(3),
+        ec.append(Estimate("tibial_plafond", on(ta.point, unit(ta.direction)), (0.001 ** 2) * np.eye(3),
                            ANKLE_MODEL_SD["tibial_plafond"][0] * rd))
     P = s.upper()
     if tib is not None and fib is not None and f"{P}MMA" in tib.landmarks and f"{P}ANK" in fib.landmarks:
         a, b = tib.landmarks[f"{P}MMA"], fib.landmarks[f"{P}ANK"]
-        d = unit_(b.position - a.position)
+        d = unit(b.position - a.position)
         ec.append(Estimate("malleoli", on(0.5 * (a.position + b.position), d), 0.25 * (a.cov + b.cov),
                            ANKLE_MODEL_SD["malleoli"][0] * rd, check=True))
         eu.append(Estimate("malleoli", d, np.radians(2.0) ** 2 * np.eye(3), np.radians(ANKLE_MODEL_SD["malleoli"][1]),
@@ -267,14 +279,6 @@ def _ankle_centre(tal, tib, fib, s):
     spread = rc.cov_spread
     fl = () if rc.agree and ru.agree else ("low_confidence",)
     return rc.value, rc.cov_fit, spread, ru.value, sd, {"centre": rc.to_json("m"), "axis": ru.to_json("rad")}, fl
-
-
-def unit_(v) -> np.ndarray:
-    return _unit(v)
-
-
-def orient_(v, ref) -> np.ndarray:
-    return v if float(np.dot(v, ref)) >= 0 else -np.asarray(v)
 
 
 #: largest distance (m) between a joint centre and the neighbouring bone's articular landmark (tibial
@@ -327,8 +331,8 @@ def _joint(name, kind, origin, cov_det, parent, child, sd_det, flags, radius, sp
     return Joint(name, np.asarray(origin, float).copy(), 0.5 * (cov + cov.T), ref.rotation.copy(), sd, flags,
                  parent=parent, child=child, origin_cov_detection=np.asarray(cov_det, float).copy(),
                  axis_sd_detection_deg=float(sd_det), cross_check=cross,
-                 model_error={"centre_sd_m": round(sd_c, 9), "axis_sd_deg": me["axis_deg"],
-                              "articular_radius_m": round(float(radius), 6)})
+                 model_error={"centre_sd_m": float(sd_c), "axis_sd_deg": me["axis_deg"],
+                              "articular_radius_m": float(radius)})
 
 
 def _hip_centre(fem, pel, s):
@@ -445,7 +449,7 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 dropped[j] = "talar dome not detected"
             else:
                 ao, acov, spread, au, asd, cross, fl = _ankle_centre(tal, tib, B.get(f"fibula_{s}"), s)
-                au = orient_(au, tal.axes["ankle_axis"].direction)
+                au = orient(au, tal.axes["ankle_axis"].direction)
                 if knee_c is not None:
                     yh = knee_c - ao
                 elif "plateau_centre" in tib.landmarks:

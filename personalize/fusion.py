@@ -27,7 +27,7 @@ foot-to-hip) are blended with the same Gaussian weights, each chain's pose
 error variance taken as its marker residual squared:
 w_b = r_a² / (r_a² + r_b²), R = R_a exp(w_b log(R_aᵀ R_b)) (the weighted
 geodesic mean on SO(3)), t = (1 - w_b) t_a + w_b t_b.  That part lives in
-`kinematics.gait.chain_blend` (the marker-driven side uses it; re-exported here).
+`kinematics.gait.chain_blend` (the marker-driven side uses it).
 """
 from __future__ import annotations
 
@@ -37,12 +37,11 @@ import numpy as np
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from kinematics.gait.chain_blend import BlendedPoses, blend_poses
-
 from lowerlimb.errors import InputError
+from lowerlimb.estimates import Gaussian
 
-__all__ = ["Fused", "FusedAxis", "BlendedPoses", "as_gaussian", "as_axis", "fuse_gaussian", "fuse_linear", "fuse_axis",
-           "fuse_axes", "blend_poses", "fusion_monte_carlo"]
+__all__ = ["Fused", "FusedAxis", "as_gaussian", "as_axis", "fuse_gaussian", "fuse_linear", "fuse_axis",
+           "fuse_axes", "fusion_monte_carlo"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +67,11 @@ class Fused:
     @property
     def sd(self) -> np.ndarray:
         return np.sqrt(np.diag(self.cov))
+
+    @property
+    def gaussian(self) -> Gaussian:
+        """The fused estimate N(mean, cov)."""
+        return Gaussian(self.mean, self.cov)
 
     @property
     def consistent(self) -> bool:
@@ -96,13 +100,15 @@ def _as_cov(c, d: int, name: str) -> np.ndarray:
 def as_gaussian(estimate, *, frame: str = "proximal"):
     """(mean, cov) of any estimate the project produces.
 
-    Accepts a ``(mean, cov)`` pair, a `kinematics.algorithms.functional.CentreEstimate`
+    Accepts a `lowerlimb.estimates.Gaussian`, a ``(mean, cov)`` pair, a `kinematics.algorithms.functional.CentreEstimate`
     (``frame`` "proximal" or "distal"), a `SphereFit` (centre, cov), a
     landmarks.json landmark ``{"position", "cov"}`` or a joints.json joint
     ``{"origin", "origin_cov"}``.
     """
     if isinstance(estimate, tuple) and len(estimate) == 2:
         return estimate
+    if isinstance(estimate, Gaussian):
+        return estimate.mean, estimate.cov
     if isinstance(estimate, dict):
         if "position" in estimate and "cov" in estimate:
             return np.asarray(estimate["position"], float), np.asarray(estimate["cov"], float)

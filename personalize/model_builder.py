@@ -121,6 +121,8 @@ class SideParameters:
     mtp : (3,) point on the metatarsophalangeal axis; mtp_axis : (3,)
     knee_law : CorrelativeLaw of this side's knee (default: `default_knee_law`); its constant term is the
         knee translation at the standing pose (m; zero when the fused knee centre is the standing one)
+    centre_cov : {"hip" | "knee" | "ankle": (3, 3) m²}, the stated covariance of each centre
+    axis_sd_deg : {"knee" | "ankle": deg}, the 1-sd angle of each axis; both written to model.json
     """
 
     hip: np.ndarray
@@ -133,6 +135,8 @@ class SideParameters:
     mtp: np.ndarray
     mtp_axis: np.ndarray
     knee_law: CorrelativeLaw | None = None
+    centre_cov: dict = field(default_factory=dict)
+    axis_sd_deg: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -424,9 +428,27 @@ def model_json(pm: PersonalModel, mesh_files: dict | None = None) -> dict:
                         for c in m.coordinates],
         "markers": [{"name": mk.name, "body": mk.body, "offset": mk.offset.tolist()} for mk in m.markers],
         "knee_laws": {s: law.to_json() for s, law in pm.knee_laws.items()},
+        "uncertainty": _uncertainty_json(pm.parameters),
         "sources": pm.parameters.sources,
         "standing_q": dict(zip(m.coordinate_names, pm.standing_q.tolist())),
     }
+
+
+def _uncertainty_json(p: SubjectParameters) -> dict:
+    """The joint parameters the model was built from with their stated uncertainty (static lab frame)."""
+    joints = {}
+    for s, sp in p.sides.items():
+        for j in ("hip", "knee", "ankle"):
+            e = {"centre": np.asarray(getattr(sp, j), float).tolist()}
+            if j in sp.centre_cov:
+                e["centre_cov"] = np.asarray(sp.centre_cov[j], float).tolist()
+            if j != "hip":
+                e["axis"] = np.asarray(getattr(sp, f"{j}_axis"), float).tolist()
+                if j in sp.axis_sd_deg:
+                    e["axis_sd_deg"] = float(sp.axis_sd_deg[j])
+            joints[f"{j}_{s}"] = e
+    return {"units": "centre m, centre_cov m^2, axis unit vector, axis_sd_deg deg",
+            "frame": "lab frame of the static trial (ground)", "joints": joints}
 
 
 def save_model_json(pm: PersonalModel, path: Path, mesh_files: dict | None = None) -> Path:

@@ -28,12 +28,15 @@ lateral) while the fit's formal sd was about 0.1 mm.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from lowerlimb.errors import InputError
+from lowerlimb.estimates import Gaussian
 from .fusion import Fused, fuse_gaussian
 
-__all__ = ["SEGMENTS", "MRI_POSTURE_SD", "MOTION_KNEE_TRANSLATION_SD", "segment_length", "fuse_segment_lengths",
+__all__ = ["SegmentLength", "SEGMENTS", "MRI_POSTURE_SD", "MOTION_KNEE_TRANSLATION_SD", "segment_length", "fuse_segment_lengths",
            "fuse_knee_standing_translation"]
 
 #: segment -> (proximal centre, distal centre)
@@ -71,19 +74,33 @@ def segment_length(p, q, cov_p, cov_q, cov_pq=None) -> tuple[float, float]:
     return L, float(u @ C @ u)
 
 
-def fuse_segment_lengths(mri: dict, motion: dict, sides=("r", "l")) -> dict:
+@dataclass(frozen=True)
+class SegmentLength:
+    """A segment length from both sources and fused (m; variances m²): 1-D Gaussians."""
+
+    mri: Gaussian
+    motion: Gaussian
+    fused: Fused
+
+    def summary(self) -> dict:
+        """JSON-ready: mri, mri_sd, motion, motion_sd (m) and the fused `Fused.summary()`."""
+        return {"mri": float(self.mri.mean[0]), "mri_sd": float(self.mri.sd[0]), "motion": float(self.motion.mean[0]),
+                "motion_sd": float(self.motion.sd[0]), "fused": self.fused.summary()}
+
+
+def fuse_segment_lengths(mri: dict, motion: dict, sides=("r", "l")) -> dict[str, SegmentLength]:
     """MRI and motion thigh and shank lengths fused as Gaussians.
 
     Parameters
     ----------
-    mri, motion : dict centre name (``hip_r``, ``knee_r``, ``ankle_r``, ``_l``) -> (position (3,) m,
+    mri, motion : dict centre name (``hip_r``, ``knee_r``, ``ankle_r``, ``_l``) -> `Gaussian` (position (3,) m,
         covariance (3, 3) m²), each in its own frame
     sides : sides to report
 
     Returns
     -------
-    dict ``thigh_r``, ``shank_r``, ... -> {"mri": m, "mri_sd": m, "motion": m, "motion_sd": m,
-    "fused": `Fused.summary()`}; segments a source cannot measure are left out
+    dict ``thigh_r``, ``shank_r``, ... -> `SegmentLength` (each variance floored at 1e-12 m² for the fusion);
+    segments a source cannot measure are left out
     """
     out = {}
     for s in sides:
@@ -91,11 +108,10 @@ def fuse_segment_lengths(mri: dict, motion: dict, sides=("r", "l")) -> dict:
             ka, kb = f"{a}_{s}", f"{b}_{s}"
             if not all(k in src for src in (mri, motion) for k in (ka, kb)):
                 continue
-            Lm, vm = segment_length(mri[ka][0], mri[kb][0], mri[ka][1], mri[kb][1])
-            Lk, vk = segment_length(motion[ka][0], motion[kb][0], motion[ka][1], motion[kb][1])
+            Lm, vm = segment_length(mri[ka].mean, mri[kb].mean, mri[ka].cov, mri[kb].cov)
+            Lk, vk = segment_length(motion[ka].mean, motion[kb].mean, motion[ka].cov, motion[kb].cov)
             f = fuse_gaussian([(Lm, max(vm, 1e-12)), (Lk, max(vk, 1e-12))], ("mri", "motion"))
-            out[f"{seg}_{s}"] = {"mri": Lm, "mri_sd": float(np.sqrt(vm)), "motion": Lk, "motion_sd": float(np.sqrt(vk)),
-                                 "fused": f.summary()}
+            out[f"{seg}_{s}"] = SegmentLength(Gaussian(Lm, vm), Gaussian(Lk, vk), f)
     return out
 
 

@@ -217,18 +217,19 @@ def measure_skin_thickness(volume, points: dict, normals: dict, *, normal_sd_deg
     return out
 
 
-def measure_pelvis_skin(volume, landmarks_json: dict, pelvis_mesh, *, markers=PELVIS_SKIN_MARKERS,
+def measure_pelvis_skin(volume, pelvis, pelvis_mesh, *, markers=PELVIS_SKIN_MARKERS,
                         normal_sd_deg: float | None = None) -> dict[str, SkinThickness]:
-    """`measure_skin_thickness` for the pelvic markers of a landmarks.json (scanner frame, m).
+    """`measure_skin_thickness` for the pelvic markers of the pelvis' `BoneLandmarks` (scanner frame, m).
 
     The normals are the pelvis surface's vertex normals nearest to each landmark, as the pelvis
-    registration takes them (`personalize.registration.register_segments`), with its sd
+    registration takes them (`personalize.marker_registration.register_segments`), with its sd
     (`personalize.registration.SURFACE_NORMAL_SD_DEG`).  Markers without a landmark are left out.
     """
-    from .registration import SURFACE_NORMAL_SD_DEG, _surface_normal
+    from .marker_registration import surface_normal
+    from .registration import SURFACE_NORMAL_SD_DEG
 
-    lms = landmarks_json.get("bones", {}).get("pelvis", {}).get("landmarks", {})
-    pts = {k: (np.asarray(lms[k]["position"], float), lms[k].get("cov")) for k in markers if k in lms}
-    nrm = {k: _surface_normal(pelvis_mesh, v[0]) for k, v in pts.items()}
+    lms = pelvis.landmarks
+    pts = {k: (lms[k].position, lms[k].cov) for k in markers if k in lms}
+    nrm = {k: surface_normal(pelvis_mesh, v[0]) for k, v in pts.items()}
     return measure_skin_thickness(volume, pts, nrm,
                                   normal_sd_deg=SURFACE_NORMAL_SD_DEG if normal_sd_deg is None else normal_sd_deg)

@@ -7,7 +7,8 @@ from scipy.spatial.transform import Rotation
 
 from kinematics.gait.pig import SegmentPose
 from lowerlimb.errors import InputError
-from personalize.fusion import blend_poses, fuse_axis, fuse_gaussian, fuse_linear, fusion_monte_carlo
+from kinematics.gait.chain_blend import blend_poses
+from personalize.fusion import fuse_axis, fuse_gaussian, fuse_linear, fusion_monte_carlo
 
 # Hip centre in the pelvis frame (m): an MRI-like estimate (precise, anisotropic) and a motion-like one.
 C_MRI = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.5], [0.0, 0.5, 9.0]]) * 1e-6

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from lowerlimb.errors import InputError
+from lowerlimb.estimates import Gaussian
 from personalize.parameter_fusion import (MOTION_KNEE_TRANSLATION_SD, MRI_POSTURE_SD, fuse_knee_standing_translation,
                                           fuse_segment_lengths, segment_length)
 
@@ -36,12 +37,12 @@ def test_segment_length_variance_matches_monte_carlo():
 
 def test_fused_lengths_weight_the_precise_source():
     I = np.eye(3)
-    mri = {"hip_r": (np.array([0, 0, 0.80]), 1e-8 * I), "knee_r": (np.array([0, 0, 0.40]), 1e-8 * I),
-           "ankle_r": (np.zeros(3), 1e-8 * I)}
-    motion = {"hip_r": (np.array([0.1, 0.2, 0.81]), 1e-4 * I), "knee_r": (np.array([0.1, 0.2, 0.40]), 1e-4 * I),
-              "ankle_r": (np.array([0.1, 0.2, 0.0]), 4e-6 * I)}
+    mri = {"hip_r": Gaussian([0, 0, 0.80], 1e-8 * I), "knee_r": Gaussian([0, 0, 0.40], 1e-8 * I),
+           "ankle_r": Gaussian(np.zeros(3), 1e-8 * I)}
+    motion = {"hip_r": Gaussian([0.1, 0.2, 0.81], 1e-4 * I), "knee_r": Gaussian([0.1, 0.2, 0.40], 1e-4 * I),
+              "ankle_r": Gaussian([0.1, 0.2, 0.0], 4e-6 * I)}
     out = fuse_segment_lengths(mri, motion, sides=("r",))
-    th = out["thigh_r"]
+    th = out["thigh_r"].summary()
     assert th["mri"] == pytest.approx(0.40) and th["motion"] == pytest.approx(0.41)
     assert th["mri_sd"] == pytest.approx(np.sqrt(2e-8)) and th["motion_sd"] == pytest.approx(np.sqrt(2e-4))
     w = 2e-4 / (2e-4 + 2e-8)                                  # information weight of the MRI

@@ -9,7 +9,8 @@ import pytest
 
 from lowerlimb.errors import InputError
 from personalize.cli import main
-from personalize.pipeline import find_inputs, run_subject, write_phantom_subject
+from personalize.evaluation.phantom_subject import write_phantom_subject
+from personalize.pipeline import find_inputs, run_subject
 
 #: phantom seed of the module's subject (see `subject`)
 SEED = 5
@@ -45,6 +46,17 @@ def test_outputs_written(subject):
     model = json.loads((out / "model.json").read_text())
     assert {b["name"] for b in model["bodies"]} >= {"pelvis", "femur_r", "tibia_l", "calcn_r", "toes_l"}
     assert model["knee_laws"]["r"]["joint"] == "knee_r"
+    # the fused centres' covariances and axes' sds reach the model description
+    unc = model["uncertainty"]["joints"]
+    for s in summary["sides"]:
+        for j in ("hip", "knee", "ankle"):
+            f = summary["estimates"][f"{j}_{s}_centre"]["fused"]
+            np.testing.assert_allclose(unc[f"{j}_{s}"]["centre"], f["mean"], rtol=1e-12)
+            np.testing.assert_allclose(unc[f"{j}_{s}"]["centre_cov"], f["cov"], rtol=1e-12)
+        assert unc[f"knee_{s}"]["axis_sd_deg"] == pytest.approx(summary["estimates"][f"knee_{s}_axis"]["fused"]["sd_deg"])
+    # landmarks.json and joints.json are the `personalize bones` documents (one writer), input named
+    assert json.loads((out / "joints.json").read_text())["input"].endswith("labels.nii.gz")
+    assert "inputs" in json.loads((out / "landmarks.json").read_text())
 
 
 def test_lengths_intercepts_and_chain_blend(subject):
@@ -115,22 +127,23 @@ def test_hips_fused_jointly_and_angle_errors(subject):
 
 def test_fuse_hips_cross_covariance():
     """fuse_hips: the MRI 6x6 covariance is the registration's J Cov Jᵀ blocks (scaled); weights per side sum to 1."""
-    from personalize.pipeline import fuse_hips
+    from lowerlimb.estimates import Gaussian
+    from personalize.pipeline.hip import fuse_hips
     from personalize.registration import register_landmarks
 
     rng = np.random.default_rng(0)
     P = np.array([[0.12, 0.06, 0.0], [0.12, -0.06, 0.0], [-0.04, 0.05, 0.02], [-0.04, -0.05, 0.02]])
     reg = register_landmarks(P, P + [1.0, 0.5, 0.9] + rng.normal(0, 1e-3, P.shape), marker_sd=0.003)
-    hips = {"r": (np.array([0.05, -0.08, -0.08]), 1e-8 * np.eye(3)), "l": (np.array([0.05, 0.08, -0.08]), 1e-8 * np.eye(3))}
-    motion = {s: (reg.transfer_point(h[0])[0] + [0.005, 0.0, -0.01], 1e-4 * np.eye(3)) for s, h in hips.items()}
+    hips = {"r": Gaussian([0.05, -0.08, -0.08], 1e-8 * np.eye(3)), "l": Gaussian([0.05, 0.08, -0.08], 1e-8 * np.eye(3))}
+    motion = {s: Gaussian(reg.transfer_point(h.mean)[0] + [0.005, 0.0, -0.01], 1e-4 * np.eye(3)) for s, h in hips.items()}
     mri, fused, joint = fuse_hips(reg, hips, motion, mri_scale=0.5)
     np.testing.assert_allclose(joint.weights.sum(axis=0), np.eye(6), atol=1e-12)
-    np.testing.assert_allclose(mri["r"][1], 0.5 * reg.transfer_point(*hips["r"])[1] + 1e-8 * np.eye(3), rtol=1e-9)  # + detection floor
-    Y, C6 = reg.transfer_points([hips["r"][0], hips["l"][0]], [hips["r"][1], hips["l"][1]])
+    np.testing.assert_allclose(mri["r"].cov, 0.5 * reg.transfer_estimate(hips["r"]).cov + 1e-8 * np.eye(3), rtol=1e-9)  # + detection floor
+    Y, C6 = reg.transfer_points([hips["r"].mean, hips["l"].mean], [hips["r"].cov, hips["l"].cov])
     # the fused hips are closer to the (exact) MRI ones than to the 1 cm-off motion ones, and stay correlated
     for s in "rl":
         assert fused[s].shares.sum() == pytest.approx(1.0) and fused[s].shares[0] > 0.5
-        assert np.linalg.norm(fused[s].mean - mri[s][0]) < np.linalg.norm(fused[s].mean - motion[s][0])
+        assert np.linalg.norm(fused[s].mean - mri[s].mean) < np.linalg.norm(fused[s].mean - motion[s].mean)
     # the MRI hips enter with their cross-covariance: the fused hips stay correlated
     assert np.all(np.abs(np.diag(C6[:3, 3:])) > 0) and np.all(np.abs(np.diag(joint.cov[:3, 3:])) > 0)
 
@@ -241,7 +254,7 @@ def test_knee_law_fitted_without_soft_tissue_artefact(subject):
     from kinematics.mechanisms.correlative import CorrelativeLaw
     from kinematics.io.opensim_io import load_osim
     from personalize.model_builder import default_knee_law
-    from personalize.pipeline import fit_knee_laws
+    from personalize.pipeline.knee_law import fit_knee_laws
     from phantoms import make_phantom
     from phantoms.motion import make_trials
 
@@ -325,7 +338,7 @@ def test_pelvic_soft_tissue_measured_in_the_mri(subject):
     for k, v in st.items():
         assert v["source"] == "MRI"
         assert abs(v["thickness_mm"] - 1e3 * truth[k]["thickness"]) < max(v["sd_mm"], 1.5), (k, v, truth[k])
-    from personalize.pipeline import MRI_HIP_COV_SCALE_MEASURED
+    from personalize.pipeline.hip import MRI_HIP_COV_SCALE_MEASURED
 
     assert summary["mri_hip_cov_scale"] == MRI_HIP_COV_SCALE_MEASURED
 
@@ -368,3 +381,18 @@ def test_hip_angles_follow_the_anatomical_convention(subject):
     for s in "rl":
         assert abs(summary["angle_offset_deg"][f"hip_flexion_{s}"]) < 3.0
         assert summary["angle_rmse_deg"][f"hip_flexion_{s}"] < 4.0
+
+
+def test_calibration_constants_are_the_recorded_ones():
+    """Every calibrated constant in force is the value calibration.json records with its source, and vice versa."""
+    from personalize.pipeline.calibration import calibration_record, constants
+
+    code, rec = constants(), calibration_record()
+    assert set(code) == set(rec)
+    for k, v in code.items():
+        r = rec[k]["value"]
+        if isinstance(v, dict):
+            assert v == r, k
+        else:
+            np.testing.assert_allclose(v, r, rtol=1e-12, err_msg=k)
+        assert rec[k]["benchmark"], k

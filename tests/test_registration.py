@@ -7,7 +7,9 @@ from scipy.spatial.transform import Rotation
 
 from kinematics.io.markers import MarkerTrial
 from lowerlimb.errors import InputError
-from personalize.registration import (MARKER_RADIUS, SKIN_THICKNESS, register_landmarks, register_segments, skin_prior,
+from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
+from personalize.marker_registration import register_segments
+from personalize.registration import (SKIN_THICKNESS, register_landmarks, skin_prior,
                                       static_marker_positions)
 
 R_TRUE = Rotation.from_rotvec([0.3, -0.5, 1.2]).as_matrix()
@@ -44,7 +46,7 @@ def test_transform_and_uncertainty_calibrated():
     K = len(P0)
     Cp = np.array([np.diag(rng.uniform(0.001, 0.003, 3)) ** 2 for _ in range(K)])
     N = _random_normals(rng, K)
-    off, off_sd, nsd, msd = SKIN_THICKNESS + MARKER_RADIUS, 0.003, np.radians(10.0), 0.003
+    off, off_sd, nsd, msd = SKIN_THICKNESS + DEFAULT_MARKER_RADIUS, 0.003, np.radians(10.0), 0.003
     hip = np.array([0.0, 0.88, 0.08])  # a point away from the landmarks, like a hip centre
     hips = np.array([[0.0, 0.88, 0.08], [0.0, 0.88, -0.08]])  # both hip centres: one shared registration error
     errs, covs, hip_m2, dir_err, dir_sd, pair_m2, pair_e, pair_c = [], [], [], [], [], [], [], []
@@ -156,11 +158,14 @@ def _mirror(bones_r):
     return out
 
 
-def _landmarks_json(bones):
+def _landmark_set(bones):
+    """The landmarks as a landmarks.json document would hold them, read by `LandmarkSet.from_json`."""
+    from personalize.landmarks import LandmarkSet
+
     cov = (0.0015**2 * np.eye(3)).tolist()
-    return {"units": "m", "frame": "input",
-            "bones": {b: {"landmarks": {n: {"position": list(p), "cov": cov} for n, p in lms.items()},
-                          "axes": {}, "scalars": {}, "frames": {}, "flags": []} for b, lms in bones.items()}}
+    return LandmarkSet.from_json({"units": "m", "frame": "input", "bones": {
+        b: {"landmarks": {n: {"position": list(p), "cov": cov} for n, p in lms.items()},
+            "axes": {}, "scalars": {}, "frames": {}, "flags": []} for b, lms in bones.items()}})
 
 
 MARKER_NAMES = ["RASI", "LASI", "RPSI", "LPSI", "SYMP"] + [s + m for s in "RL" for m in
@@ -173,7 +178,7 @@ def world():
     rng = np.random.default_rng(3)
     bones = _skeleton()
     bones.update(_mirror(bones))
-    lm = _landmarks_json(bones)
+    lm = _landmark_set(bones)
     # Lab: Z up, X forward; each segment gets its own small extra rotation (a static pose is not the MRI pose).
     base = Rotation.from_euler("x", 90, degrees=True)
     seg_of = {}
@@ -186,18 +191,18 @@ def world():
         poses[seg] = (Rs, np.array([0.5, 1.2, 0.0]) + rng.normal(0, 0.01, 3))
     normals = {}
     pos = np.zeros((40, len(MARKER_NAMES), 3))
-    from personalize.registration import _internal_reference, SEGMENT_BONES, _segment_marker_names
+    from personalize.marker_registration import _internal_reference, SEGMENT_BONES
     flat = {n: np.array(p, float) for lms in bones.values() for n, p in lms.items()}
     for j, n in enumerate(MARKER_NAMES):
         seg = seg_of[n]
         side = None if seg == "pelvis" else seg[-1]
         base_seg = seg if seg == "pelvis" else seg[:-2]
         bnames = [b if b == "pelvis" else f"{b}_{side}" for b in SEGMENT_BONES[base_seg]]
-        ref = _internal_reference(lm["bones"], bnames, _segment_marker_names(base_seg, side), flat[n])
+        ref = _internal_reference(lm.bones, bnames, flat[n])
         nrm = flat[n] - ref
         nrm /= np.linalg.norm(nrm)
         normals[n] = nrm
-        centre = flat[n] + (skin_prior(n)[0] + MARKER_RADIUS) * nrm   # per-site tissue (the default prior)
+        centre = flat[n] + (skin_prior(n)[0] + DEFAULT_MARKER_RADIUS) * nrm   # per-site tissue (the default prior)
         Rs, ts = poses[seg]
         pos[:, j] = Rs @ centre + ts + rng.normal(0, 0.002, 3) + rng.normal(0, 0.0005, (40, 3))
     pos[5:8, 3] = np.nan  # gaps are ignored by the robust static positions
@@ -211,7 +216,7 @@ def test_static_positions_are_robust():
     pos[3, 0] = [5.0, 5.0, 5.0]  # a ghost marker in one frame
     pos[4, 0] = np.nan
     st = static_marker_positions(MarkerTrial(("RASI",), pos, 100.0, np.arange(21) / 100.0, "s.c3d"), placement_sd=0.0)
-    p, c = st["RASI"]
+    p, c = st["RASI"].mean, st["RASI"].cov
     assert np.allclose(p, 0.0, atol=2e-4)  # the mean would be 0.26 m off
     assert 0.0003 < np.sqrt(c[0, 0]) < 0.001 and c[1, 1] < 1e-10
 
@@ -276,35 +281,6 @@ def test_millimetre_markers_refused(world):
     mm = MarkerTrial(trial.names, trial.positions * 1000.0, trial.rate, trial.time, trial.source)
     with pytest.raises(InputError, match="units"):
         register_segments(lm, mm)
-
-
-def test_transfer_bone_carries_covariances(world):
-    lm, trial, poses, normals, flat = world
-    reg = register_segments(lm, trial, normals=normals)["femur_r"]
-    bone = dict(lm["bones"]["femur_r"])
-    bone["axes"] = {"knee_axis": {"point": [0.0, 0.49, 0.085], "direction": [0.0, 0.0, 1.0], "sd_deg": 2.0}}
-    bone["frames"] = {"femur": {"origin": flat["femoral_head_centre"].tolist(), "rotation": np.eye(3).tolist()}}
-    out = reg.transfer_bone(bone)
-    ax = out["axes"]["knee_axis"]
-    assert np.allclose(ax["direction"], reg.R[:, 2])
-    assert ax["sd_deg"] > 2.0  # registration uncertainty is added, never lost
-    assert np.allclose(ax["direction"] @ ax["cov"], 0.0, atol=1e-12)
-    fr = out["frames"]["femur"]
-    assert np.allclose(fr["rotation"], reg.R) and np.allclose(fr["rotation_cov"], reg.cov[:3, :3])
-    assert np.all(np.linalg.eigvalsh(out["landmarks"]["RKNE"]["cov"]) > 0.0015**2 * 0.99)
-
-
-def test_transfer_joints(world):
-    lm, trial, poses, normals, flat = world
-    reg = register_segments(lm, trial, normals=normals)["femur_r"]
-    hc = flat["femoral_head_centre"]
-    j = {"hip_r": {"origin": hc.tolist(), "origin_cov": (1e-6 * np.eye(3)).tolist(),
-                   "rotation": np.eye(3).tolist(), "axis_sd_deg": 3.0}}
-    out = reg.transfer_joints(j)["hip_r"]
-    y, cy = reg.transfer_point(hc, 1e-6 * np.eye(3))
-    assert np.allclose(out["origin"], y) and np.allclose(out["origin_cov"], cy)
-    assert np.allclose(out["rotation"], reg.R)
-    assert np.sqrt(3.0**2 + 0.5 * 0.5) < out["axis_sd_deg"] < np.hypot(3.0, np.linalg.norm(reg.rotation_sd_deg))
 
 
 def test_express_in_frame_is_calibrated():

@@ -23,7 +23,6 @@ def register(app: typer.Typer) -> None:
     def run(
         subject_dir: Path = typer.Argument(..., help="Subject folder (labels.nii.gz or bones/, static.c3d, trials, subject.json)."),
         out: Path = typer.Option(..., "--out", "-o", help="Output folder (published only when the run succeeds)."),
-        seed: int = typer.Option(0, "--seed", help="Seed of the surface point sampling (runs are deterministic)."),
         report: bool = typer.Option(True, "--report/--no-report", help="Write report.html."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress display."),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
@@ -36,7 +35,7 @@ def register(app: typer.Typer) -> None:
 
         console = Console(stderr=True, quiet=quiet)
         with StepProgress("run", expected_steps(subject_dir), console) as prog:
-            summary = run_subject(subject_dir, out, seed=seed, report=report, progress=prog, overwrite=overwrite)
+            summary = run_subject(subject_dir, out, report=report, progress=prog, overwrite=overwrite)
         if not quiet:
             _print_summary(summary, out, Console())
 

@@ -75,7 +75,8 @@ def _run_demo(out: Path, *, ph_seed: int, voxel_mm: float, say, pipeline: bool, 
     from phantoms import make_phantom
     from phantoms.subject import write_subject
 
-    from personalize.pipeline import SHORT_TRIALS, run_subject
+    from personalize.evaluation.phantom_subject import SHORT_TRIALS
+    from personalize.pipeline import run_subject
     from personalize.surfaces import load_bones
 
     seed = ph_seed
@@ -95,7 +96,7 @@ def _run_demo(out: Path, *, ph_seed: int, voxel_mm: float, say, pipeline: bool, 
         "surfaces": surface_errors(ph, surfaces),
     }
     if pipeline:
-        res = run_subject(subject, inside(out, "model"), seed=seed, progress=lambda m: say(f"pipeline: {m}"))
+        res = run_subject(subject, inside(out, "model"), progress=lambda m: say(f"pipeline: {m}"))
         summary["pipeline"] = {"errors": res.get("errors", {}), "ik_rms_mm": res["ik_rms_mm"],
                                "frame": res["frame"], "ik": res["ik"], "sources": res["sources"]}
     write_text(inside(out, "demo.json"), json.dumps(summary, indent=1) + "\n")

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lowerlimb.errors import FitError, InputError
+from lowerlimb.estimates import Gaussian
 
 __all__ = [
     "Landmark", "Axis", "BoneLandmarks", "LandmarkSet", "Surface", "as_surface",
@@ -56,6 +57,14 @@ class Landmark:
     def to_json(self) -> dict:
         return {"position": _r(self.position), "cov": _r(self.cov, 12)}
 
+    @classmethod
+    def from_json(cls, d: dict) -> "Landmark":
+        return cls(np.asarray(d["position"], float).reshape(3), np.asarray(d.get("cov", np.zeros((3, 3))), float).reshape(3, 3))
+
+    @property
+    def gaussian(self) -> Gaussian:
+        return Gaussian(self.position, self.cov)
+
 
 @dataclass(frozen=True)
 class Axis:
@@ -67,6 +76,10 @@ class Axis:
 
     def to_json(self) -> dict:
         return {"point": _r(self.point), "direction": _r(self.direction, 9), "sd_deg": round(float(self.sd_deg), 6)}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Axis":
+        return cls(np.asarray(d["point"], float), np.asarray(d["direction"], float), float(d.get("sd_deg", 0.0)))
 
 
 @dataclass
@@ -110,6 +123,19 @@ class BoneLandmarks:
             "notes": list(self.notes),
         }
 
+    @classmethod
+    def from_json(cls, bone: str, d: dict) -> "BoneLandmarks":
+        """One bone of a landmarks.json (fits are in fits.json and are not read)."""
+        sc = d.get("scalars", {})
+        return cls(bone=bone, side=bone[-1] if bone[-2:] in ("_r", "_l") else None,
+                   landmarks={k: Landmark.from_json(v) for k, v in d.get("landmarks", {}).items()},
+                   axes={k: Axis.from_json(v) for k, v in d.get("axes", {}).items()},
+                   scalars={k: float(v["value"] if isinstance(v, dict) else v) for k, v in sc.items()},
+                   frames={k: {"origin": np.asarray(f["origin"], float), "rotation": np.asarray(f["rotation"], float)}
+                           for k, f in d.get("frames", {}).items()},
+                   flags=list(d.get("flags", [])), notes=list(d.get("notes", [])),
+                   scalar_sd={k: float(v["sd"]) for k, v in sc.items() if isinstance(v, dict) and v.get("sd") is not None})
+
 
 @dataclass
 class LandmarkSet:
@@ -135,6 +161,19 @@ class LandmarkSet:
 
     def fits_json(self) -> dict:
         return {"units": "m", "frame": "input", "bones": {k: v.fits for k, v in self.bones.items()}}
+
+    @classmethod
+    def from_json(cls, d: dict, source: str = "landmarks.json") -> "LandmarkSet":
+        """A landmarks.json document (`to_json`); `InputError` naming `source` when it is not one."""
+        if not isinstance(d, dict) or not isinstance(d.get("bones"), dict):
+            raise InputError(source, "not a landmarks file (no 'bones')")
+        if d.get("units", "m") != "m":
+            raise InputError(source, f"landmark units must be 'm', got {d.get('units')!r}")
+        try:
+            bones = {k: BoneLandmarks.from_json(k, v) for k, v in d["bones"].items()}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(source, f"malformed landmark entry ({' '.join(str(exc).split())})") from None
+        return cls(bones=bones, missing=list(d.get("missing_bones", [])), rejected=dict(d.get("rejected", {})))
 
 
 def _r(a, nd: int = 9):

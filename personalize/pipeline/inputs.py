@@ -1,0 +1,187 @@
+"""Inputs of a subject folder: find, read and check them (the first stage of `personalize.pipeline.run_subject`).
+
+A subject folder holds ``labels.nii.gz`` (+ ``label_map.json``) or ``bones/``,
+``static.c3d``, ``subject.json`` and every other ``*.c3d`` (gait, crouch,
+functional ``functional_hip*.c3d``).  Refused (`InputError`, one line naming the
+file): a missing static or motion trial, a trial whose rigid pelvis marker
+distances differ from the static trial's (another subject), labels and markers
+without a common side.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from kinematics.io.markers import MarkerTrial
+from lowerlimb.errors import InputError
+
+__all__ = ["SubjectInputs", "find_inputs", "check_same_subject", "check_trial_legs", "TRIAL_LEG_RATIO_TOL",
+           "label_volume", "PELVIS_MARKERS"]
+
+#: the rigid pelvis markers every trial must show
+PELVIS_MARKERS = ("RASI", "LASI", "RPSI", "LPSI")
+#: markers (R/L prefixed) a side needs in the static trial
+_REQUIRED = ("THI", "KNE", "TIB", "ANK", "HEE", "TOE")
+
+
+@dataclass(frozen=True)
+class SubjectInputs:
+    """A subject folder, read and checked.
+
+    folder : Path; bones : labels file or bones/ folder; label_map : Path or None
+    static : MarkerTrial; trials : dict name -> MarkerTrial (every dynamic trial, incl. functional)
+    functional : name of the hip calibration trial or None
+    subject : kinematics.gait.subject.SubjectMeasurements
+    truth : dict (truth.json) or None; sides : tuple of sides with both bones and markers
+    """
+
+    folder: Path
+    bones: Path
+    label_map: Path | None
+    static: MarkerTrial
+    trials: dict
+    functional: str | None
+    subject: object
+    truth: dict | None
+    sides: tuple
+
+
+def _pelvis_distances(trial: MarkerTrial) -> np.ndarray:
+    d = []
+    for a, b in (("RASI", "LASI"), ("RASI", "RPSI"), ("LASI", "LPSI"), ("RPSI", "LPSI")):
+        x = np.linalg.norm(trial.marker(a) - trial.marker(b), axis=1)
+        x = x[np.isfinite(x)]
+        d.append(np.median(x) if x.size else np.nan)
+    return np.array(d)
+
+
+def find_inputs(subject_dir: str | Path) -> SubjectInputs:
+    """Locate and read the inputs of a subject folder (see the module docstring).
+
+    Raises
+    ------
+    InputError : one line naming the file and the problem
+    """
+    from kinematics.io.c3d import read_c3d
+    from kinematics.gait.subject import read_subject
+
+    from ..evaluation.truth import read_truth
+
+    folder = Path(subject_dir)
+    if not folder.is_dir():
+        raise InputError(folder, "subject folder not found")
+    bones = next((folder / n for n in ("labels.nii.gz", "labels.nii", "labels.nrrd") if (folder / n).is_file()), None)
+    if bones is None and (folder / "bones").is_dir():
+        bones = folder / "bones"
+    if bones is None:
+        raise InputError(folder, "no bone images: expected labels.nii.gz (with label_map.json) or a bones/ folder of meshes")
+    label_map = folder / "label_map.json" if (folder / "label_map.json").is_file() and bones.is_file() else None
+    if not (folder / "static.c3d").is_file():
+        raise InputError(folder / "static.c3d", "missing: the static (standing) trial is required")
+    if not (folder / "subject.json").is_file():
+        raise InputError(folder / "subject.json", "missing: height, mass and Plug-in-Gait measurements are required")
+    subject = read_subject(folder / "subject.json")
+    static = read_c3d(folder / "static.c3d")
+    names = sorted(p.name for p in folder.glob("*.c3d") if p.name != "static.c3d")
+    if not names:
+        raise InputError(folder, "no motion trial: at least one C3D besides static.c3d is required")
+    trials = {Path(n).stem: read_c3d(folder / n) for n in names}
+    check_same_subject(static, trials.values())
+    functional = next((k for k in ("functional_hip",) if k in trials), None)
+    if functional is None:
+        functional = next((k for k in sorted(trials) if k.startswith("functional")), None)
+    truth = read_truth(folder / "truth.json")
+    marker_sides = [s for s in ("r", "l") if all(s.upper() + m in static.names for m in _REQUIRED)
+                    and all(_visible(static, s.upper() + m) for m in _REQUIRED)]
+    if not marker_sides:
+        raise InputError(folder / "static.c3d", f"no side has all of the markers {', '.join(_REQUIRED)} (R/L prefixed)")
+    return SubjectInputs(folder, bones, label_map, static, trials, functional, subject, truth, tuple(marker_sides))
+
+
+
+def _visible(trial: MarkerTrial, name: str) -> bool:
+    return name in trial.names and bool(np.all(np.isfinite(trial.marker(name)), axis=1).any())
+
+
+def check_same_subject(static: MarkerTrial, trials) -> None:
+    """Refuse trials that cannot be of the static trial's subject.
+
+    The four pelvis markers (RASI, LASI, RPSI, LPSI) sit on one rigid segment:
+    their four distances (inter-ASIS, ASIS-PSIS per side, inter-PSIS),
+    medians over the frames, must agree with the static trial's within
+    ``max(15 mm, 6 % of the shortest)``; a Vicon subject name (label prefix)
+    must be the static's.  The static must show every pelvis marker.
+
+    Raises
+    ------
+    InputError naming the static trial (a pelvis marker never visible) or the trial at fault.
+    """
+    src = static.source
+    missing = [m for m in PELVIS_MARKERS if m not in static.names]
+    if missing:
+        raise InputError(src, f"missing markers: {', '.join(missing)}")
+    never = [m for m in PELVIS_MARKERS if not _visible(static, m)]
+    if never:
+        raise InputError(src, f"pelvis marker(s) {', '.join(never)} never visible ({static.n_frames} frames, "
+                              "no valid sample): the static trial cannot place the pelvis")
+    ref = _pelvis_distances(static)
+    if not np.all(np.isfinite(ref)):
+        raise InputError(src, "the pelvis markers are never visible together in one frame")
+    for tr in trials:
+        missing = [m for m in PELVIS_MARKERS if m not in tr.names]
+        if missing:
+            raise InputError(tr.source, f"pelvis markers {', '.join(missing)} missing")
+        s1, s2 = static.extra.get("subject"), tr.extra.get("subject")
+        if s1 and s2 and s1 != s2:
+            raise InputError(tr.source, f"labelled for subject {s2!r} but the static trial "
+                                        f"{Path(src).name} is subject {s1!r}")
+        d = _pelvis_distances(tr)
+        if not np.all(np.isfinite(d)):
+            raise InputError(tr.source, "the pelvis markers are never visible together in one frame")
+        diff = float(np.max(np.abs(d - ref)))
+        if diff > max(0.015, 0.06 * np.min(ref)):
+            raise InputError(tr.source, f"pelvis marker distances differ from the static trial {Path(src).name} by "
+                                        f"{diff * 1e3:.0f} mm (rigid on one subject): a trial of another subject?")
+
+
+#: a movement trial's 95th-percentile ASIS-ankle marker distance over the leg length: 0.99-1.00 on mocap_pig
+#: (Movement_trial with Test.vsk; the legs straighten at heel strike), refused beyond 1 +- this
+TRIAL_LEG_RATIO_TOL = 0.10
+
+
+def check_trial_legs(subject, trial: MarkerTrial, tol: float = TRIAL_LEG_RATIO_TOL) -> dict:
+    """Refuse a movement trial whose legs cannot be the subject file's (no static trial to compare with).
+
+    r = P95(|ASIS - ANK|) / leg length per side must satisfy |r - 1| <= `tol`
+    (in walking the leg is straight at heel strike, so the 95th percentile is
+    the standing distance).  Returns {side: r}; sides without both markers are skipped.
+    """
+    ratios = {}
+    for side, L in (("R", subject.right_leg_length), ("L", subject.left_leg_length)):
+        if f"{side}ASI" not in trial.names or f"{side}ANK" not in trial.names:
+            continue
+        d = np.linalg.norm(trial.marker(f"{side}ASI") - trial.marker(f"{side}ANK"), axis=1)
+        d = d[np.isfinite(d)]
+        if d.size < 10:
+            continue
+        r = float(np.percentile(d, 95) / L)
+        ratios[side] = r
+        if abs(r - 1.0) > tol:
+            raise InputError(trial.source, f"{side} ASIS-ankle marker distance (95th percentile {np.percentile(d, 95) * 1e3:.0f} mm) "
+                                           f"does not match the {'right' if side == 'R' else 'left'} leg length "
+                                           f"{L * 1e3:.0f} mm of {subject.source or 'the subject file'} (ratio {r:.2f}): "
+                                           "a trial of another subject, or the wrong subject file?")
+    return ratios
+
+
+
+def label_volume(inputs: SubjectInputs):
+    """The subject's label volume (`personalize.io.LabelVolume`), or None when the bones are a mesh folder."""
+    from ..io import is_label_volume_path, read_label_volume
+
+    src = Path(inputs.bones)
+    if not (src.is_file() and is_label_volume_path(src)):
+        return None
+    return read_label_volume(src, inputs.label_map)

@@ -1,0 +1,146 @@
+"""Joint estimation: the pelvis registration, then hip, knee, ankle and foot per side (MRI, motion, fused).
+
+Each MRI joint centre and axis reaches the lab frame of the static trial through
+its segment's registration, proximal first (`personalize.pipeline.hip`,
+`knee`, `foot`): the pelvis from its markers (soft tissue measured in the MRI's
+body label where it has one), then femur, shank and foot each from its markers
+plus the fused proximal joint centre.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+from kinematics.gait.pig import pelvis_frame
+from lowerlimb.errors import InputError
+
+from ..marker_registration import register_segments
+from ..registration import GATE_P, gate_statistic, static_marker_positions
+from .foot import estimate_ankle, estimate_foot_axes
+from .hip import MRI_HIP_COV_SCALE, MRI_HIP_COV_SCALE_MEASURED, estimate_hips
+from .inputs import PELVIS_MARKERS, SubjectInputs, label_volume
+from .joint_estimates import JointContext, JointEstimates
+from .knee import estimate_knee
+from .motion import aliased_static, pig_static
+
+__all__ = ["estimate_joints", "pelvis_skin", "gate_registrations"]
+
+
+def pelvis_skin(inputs: SubjectInputs, surfaces: dict, landmarks, volume=None) -> dict:
+    """Tissue under the pelvic markers (`personalize.skin.measure_pelvis_skin`) when the label volume names a
+    body/skin label; {} for bone-only volumes and mesh folders (the population prior is then used).
+
+    `landmarks` : `personalize.landmarks.LandmarkSet`; `volume`: the subject's label volume when already read."""
+    from ..io import read_tissue_label
+    from ..skin import measure_pelvis_skin
+
+    if "pelvis" not in surfaces or "pelvis" not in landmarks or read_tissue_label(inputs.label_map) is None:
+        return {}
+    vol = volume if volume is not None else label_volume(inputs)
+    if vol is None:
+        return {}
+    return measure_pelvis_skin(vol, landmarks["pelvis"], surfaces["pelvis"].mesh)
+
+
+def estimate_joints(inputs: SubjectInputs, surfaces: dict, landmarks, joints: dict, say: Callable[[str], None],
+                    dropped: dict | None = None, skin: dict | None = None) -> JointEstimates:
+    """MRI, motion and fused joint parameters per side (static lab frame); see the module docstring.
+
+    Parameters
+    ----------
+    surfaces : bone -> `personalize.surfaces.BoneSurface` (scanner frame)
+    landmarks : `personalize.landmarks.LandmarkSet` (scanner frame)
+    joints : joint name -> `personalize.frames.Joint` (scanner frame), model-error term taken out
+        (`Joint.without_model_error`: the MRI covariance scales were calibrated on phantoms)
+    dropped : joint name -> why it is missing (for the error message)
+    skin : {marker: `personalize.skin.SkinThickness`}; default measured by `pelvis_skin` (empty without a body label)
+    """
+    st = aliased_static(inputs.static)
+    static = static_marker_positions(st)
+    est = JointEstimates()
+    sac = 0.5 * (static["RPSI"].mean + static["LPSI"].mean)
+    pf = pelvis_frame(static["RASI"].mean[None], static["LASI"].mean[None], sac[None])
+    est.pelvis = (pf.origin[0], pf.axes[0])
+    if skin is None:
+        say("measuring the soft tissue over the pelvic landmarks")
+        skin = pelvis_skin(inputs, surfaces, landmarks)
+    est.skin = dict(skin)
+    measured = {k: v for k, v in skin.items() if v.source == "MRI"}
+    for v in skin.values():
+        if v.note and v.source != "MRI" and "no body/skin label" not in v.note:
+            est.notes.append(f"soft tissue under {v.marker}: {v.note}")
+    all_measured = all(m in measured for m in PELVIS_MARKERS)
+    est.mri_hip_scale = MRI_HIP_COV_SCALE_MEASURED if all_measured else MRI_HIP_COV_SCALE
+    meshes = {k: v.mesh for k, v in surfaces.items()}
+    say("registering the pelvis")
+    regs = register_segments(landmarks, st, sides=inputs.sides, segments=("pelvis",), surfaces=meshes,
+                             skin_thickness={k: v.thickness for k, v in measured.items()},
+                             skin_sd={k: v.sd for k, v in measured.items()})
+    if "pelvis" not in regs:
+        raise InputError(inputs.static.source, "the pelvis could not be registered (needs RASI, LASI, RPSI, LPSI in MRI and markers)")
+    est.registrations["pelvis"] = regs["pelvis"]
+    dynamic = [t for k, t in sorted(inputs.trials.items()) if k != inputs.functional and not k.startswith("functional")]
+    for s in inputs.sides:
+        for jn in ("hip", "knee", "ankle"):
+            if f"{jn}_{s}" not in joints:
+                why = (dropped or {}).get(f"{jn}_{s}", "not detected")
+                raise InputError(inputs.bones, f"no {jn}_{s} joint from the MRI bones ({why})")
+    ctx = JointContext(inputs, landmarks.bones, joints, static, meshes, pig_static(inputs),
+                       dynamic or list(inputs.trials.values()),
+                       inputs.trials[inputs.functional] if inputs.functional else None, all_measured, say)
+    estimate_hips(ctx, regs["pelvis"], est.pelvis[1], est)
+    for s in inputs.sides:
+        hip = est.centres[s]["hip"].fused
+        reg_f, knee, knee_axis, k_scale = estimate_knee(ctx, s, hip, est.mri_hip_scale, est)
+        reg_t, ankle, ankle_axis, a_scale = estimate_ankle(ctx, s, knee.fused, k_scale, est)
+        est.registrations[f"femur_{s}"], est.registrations[f"tibia_{s}"] = reg_f, reg_t
+        for r in (reg_f, reg_t):
+            if any(n.startswith("pig_") for n in r.names):
+                est.notes.append(f"{r.segment}: fewer than 3 landmark/marker correspondences; registered with the Plug-in-Gait "
+                                 "joint centre (MRI and motion estimates of this segment are correlated)")
+        est.registrations[f"calcn_{s}"], est.lines[s] = estimate_foot_axes(ctx, s, ankle.fused, a_scale, reg_t, est)
+        est.centres[s].update(knee=knee, ankle=ankle)
+        est.axes[s] = {"knee": knee_axis, "ankle": ankle_axis}
+    note_inconsistencies(est)
+    return est
+
+
+def note_inconsistencies(est: JointEstimates, p_min: float = 0.01) -> None:
+    """Say so in ``notes`` when a registration or a fusion fails its χ² test (p < `p_min`).
+
+    A pelvis whose soft tissue is far thicker than the prior, a misplaced marker or an MRI of
+    another subject shows up here first; the estimates stay (with inflated covariances), flagged.
+    """
+    for name, r in est.registrations.items():
+        if r.p_value < p_min:
+            est.notes.append(f"low confidence: {name} registration residuals {r.rms * 1e3:.1f} mm rms exceed the "
+                             f"declared marker/soft-tissue noise (chi2 {r.chi2:.1f} on {r.dof} dof, p = {r.p_value:.1g}); "
+                             "its MRI estimates carry an inflated covariance")
+    hj = est.hip_joint
+    if hj is not None and hj.p_value is not None and hj.p_value < p_min:
+        est.notes.append(f"low confidence: MRI and motion hip centres disagree (chi2 {hj.chi2:.1f} on {hj.dof} dof, "
+                         f"p = {hj.p_value:.1g}); the fused hip centres are a compromise, check the pelvis markers")
+    for kind, per_side in (("axis", est.axes), ("centre", est.centres)):
+        for s, joints in per_side.items():
+            for jn, e in joints.items():
+                if kind == "centre" and jn == "hip" and est.hip_joint is not None:
+                    continue  # said once above for both hips
+                p = e.fused.p_value
+                if p is not None and p < p_min:
+                    est.notes.append(f"low confidence: {jn} {kind} ({s}) MRI and motion estimates disagree "
+                                     f"(p = {p:.1g}); fused anyway")
+
+
+
+def gate_registrations(inputs: SubjectInputs, est: JointEstimates) -> None:
+    """Refuse the subject when the pelvis registration says the MRI bones are another person's; note other segments."""
+    for name, reg in est.registrations.items():
+        chi2, dof, p = gate_statistic(reg)
+        if p >= GATE_P:
+            continue
+        what = (f"{name} registration of the MRI bones to the static markers fails its chi-square gate "
+                f"(chi2 = {chi2:.1f} on {dof} dof, p = {p:.1g} < {GATE_P:g}; rms {reg.rms * 1e3:.1f} mm"
+                + (f"; outliers {', '.join(reg.rejected)}" if reg.rejected else "") + ")")
+        if name == "pelvis":
+            raise InputError(inputs.bones, what + ": the bones and the markers are not of the same person?")
+        est.notes.append(f"low confidence: {what}")
+

@@ -1,0 +1,69 @@
+"""The knee centre and axis: MRI (femur registered with the fused hip centre) and motion (SARA, Plug-in-Gait), fused.
+
+The femur is registered from its knee markers, projected on the MRI knee axis,
+and the fused hip centre; the MRI knee centre and axis reach the lab with the
+registration's covariance, scaled by the calibrated factors below (TRAINING
+phantoms; ``calibration.json``).  Motion: the SARA axis of the thigh and shank
+clusters (else the Plug-in-Gait femur axis) and the Plug-in-Gait knee centre of
+the static trial.  Centres are fused as Gaussians, axes on the sphere
+(`personalize.fusion`).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from lowerlimb.errors import FitError, InputError
+
+from ..fusion import Fused, fuse_axis, fuse_gaussian
+from ..registration import Registration
+from .joint_estimates import AxisEstimates, CentreEstimates, Direction, JointContext, JointEstimates
+from .motion import PIG_KNEE_AXIS_SD_DEG, motion_knee_axis, pig_centre
+from .segment_registration import register_with_centre
+
+__all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "estimate_knee"]
+
+#: scale of the femur-registration knee axis sd: the claimed 2.2 deg median vs 0.34 deg rms actual on 24 TRAINING
+#: phantom subjects (their knee markers sit exactly on the flexion axis; calibration.json)
+MRI_KNEE_AXIS_SD_SCALE = 0.107
+#: variance scale of the registered MRI knee centre, prior pelvic tissue only (8 bone-only TRAINING subjects,
+#: 16 legs) and with the pelvic tissue measured (12 subjects with the skin label, 24 legs): mean Mahalanobis d² = 3
+#: (benchmarks/knee_ankle_calibration.py; calibration.json).  Phantom-calibrated: use 1.0 on real data until
+#: calibrated there
+MRI_KNEE_CENTRE_COV_SCALE = 0.14
+MRI_KNEE_CENTRE_COV_SCALE_MEASURED = 0.017
+
+
+def centre_scale(ctx: JointContext, prior: float, measured: float) -> float:
+    return measured if ctx.tissue_measured else prior
+
+
+def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
+                  est: JointEstimates) -> tuple[Registration, CentreEstimates, AxisEstimates, float]:
+    """Femur registration, knee centre and axis estimates of side `s`; returns them and the centre scale in force.
+
+    The registration's marker noise model is the uncalibrated (conservative) one, so the hip anchor enters
+    on that scale too (``hip.cov / hip_scale``): otherwise the calibrated hip would outweigh the knee markers.
+    """
+    S = s.upper()
+    j_hip, j_knee = ctx.joints[f"hip_{s}"], ctx.joints[f"knee_{s}"]
+    pig = pig_centre(ctx.pig, "knee", s)
+    reg = register_with_centre(f"femur_{s}", ctx.bones, [f"femur_{s}"], (f"{S}KNE", f"{S}MFC", f"{S}TRO"), ctx.static,
+                               ctx.meshes, j_hip.centre, hip.gaussian.scaled(1.0 / hip_scale),
+                               axis=(j_knee.origin, j_knee.axis), fallback=[("pig_knee_centre", j_knee.centre, pig)])
+    scale = centre_scale(ctx, MRI_KNEE_CENTRE_COV_SCALE, MRI_KNEE_CENTRE_COV_SCALE_MEASURED)
+    mri = reg.transfer_estimate(j_knee.centre).scaled(scale)
+    u, sd, _ = reg.transfer_direction(j_knee.axis, j_knee.axis_sd_deg)
+    mri_axis = Direction(u, sd * MRI_KNEE_AXIS_SD_SCALE)
+    ctx.say(f"knee {S}: functional axis")
+    try:
+        motion_axis = motion_knee_axis(ctx.inputs.static, ctx.dynamic, s)
+        est.sources[f"knee_axis_{s}_motion"] = "SARA (thigh and shank clusters) on " + ", ".join(
+            Path(t.source).name for t in ctx.dynamic)
+    except (InputError, FitError) as exc:
+        motion_axis = Direction(ctx.pig.segments[f"femur_{s}"].axes[0][:, 1], PIG_KNEE_AXIS_SD_DEG)
+        est.sources[f"knee_axis_{s}_motion"] = "Plug-in-Gait femur y axis of the static trial"
+        est.notes.append(f"knee {S}: no functional knee axis ({exc}); Plug-in-Gait axis used")
+    axis = AxisEstimates(mri_axis, motion_axis, fuse_axis([mri_axis.direction, motion_axis.direction],
+                                                          [mri_axis.sd_deg, motion_axis.sd_deg], ("mri", "motion")))
+    centre = CentreEstimates(mri, pig, fuse_gaussian([mri, pig], ("mri", "motion")))
+    return reg, centre, axis, scale

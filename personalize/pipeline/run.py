@@ -1,0 +1,168 @@
+"""`run_subject`: the whole pipeline on one subject folder, stage by stage (see `personalize.pipeline`)."""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable
+
+from lowerlimb.atomic import inside
+from lowerlimb.errors import FitError, InputError
+
+from .inputs import SubjectInputs, find_inputs, label_volume
+from .joints import estimate_joints, gate_registrations, pelvis_skin
+from .summary import SubjectSummary, write_summary
+
+__all__ = ["run_subject", "read_subject_bones", "build_model"]
+
+
+def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[[str], None] | None = None,
+                report: bool = True, overwrite: bool = False) -> dict:
+    """Run the whole pipeline on one subject folder; outputs are staged into `out`.
+
+    Parameters
+    ----------
+    subject_dir : folder (`personalize.pipeline.inputs`; a `personalize phantom` folder is valid)
+    out : output folder (published only when everything succeeded)
+    progress : callable(str), called at each stage
+    report : write report.html
+    overwrite : replace a non-empty `out` whole (else it is refused before any work)
+
+    Returns
+    -------
+    dict, the content of ``summary.json`` (`SubjectSummary.to_json`)
+
+    Raises
+    ------
+    InputError : bad subject folder or output location (one line naming the file and the
+        problem); with `report`, `out` then holds only ``report.html`` stating the error
+        (unless `out` itself was refused: then it is untouched)
+    FitError : an estimate could not be made (same refusal report)
+    """
+    from ..outputs import check_output_dir
+    from ..presentation.subject_report import write_refusal_report
+
+    check_output_dir(out, inputs=[subject_dir], overwrite=overwrite)
+    try:
+        return _run_subject(subject_dir, out, progress=progress, report=report)
+    except (InputError, FitError) as exc:
+        if report:
+            write_refusal_report(Path(out), subject_dir, exc)
+        raise
+    except OSError as exc:
+        # a file-system fault met during the run (disk full, folder made read-only): the same one-line error
+        err = InputError(exc.filename or out, f"{exc.strerror or exc} (file-system fault during the run)")
+        if report:
+            try:
+                write_refusal_report(Path(out), subject_dir, err)
+            except OSError:
+                pass
+        raise err from None
+    except Exception as exc:
+        if report:
+            write_refusal_report(Path(out), subject_dir, exc)
+        raise
+
+
+def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dict:
+    """`run_subject` without the refusal report."""
+    from ..bone_set import write_bone_files
+    from ..evaluation.truth import compare_with_truth, truth_in_static_lab
+    from ..model_builder import save_model_json, save_model_osim, write_meshes
+    from ..outputs import replaced_dir
+    from ..parameter_fusion import fuse_segment_lengths
+    from .model import bone_meshes_lab
+    from .trials import chain_blend, solve_trials
+
+    say = progress or (lambda m: None)
+    say("reading inputs")
+    inputs = find_inputs(subject_dir)
+    volume = label_volume(inputs)        # read once: the bone surfaces and the soft-tissue measurement use it
+    inputs, bones = read_subject_bones(inputs, volume, say)
+    say("measuring the soft tissue over the pelvic landmarks")
+    skin = pelvis_skin(inputs, bones.surfaces, bones.landmarks, volume)
+    del volume
+    # the MRI covariance scales were calibrated on phantoms: without the real-bone model-error term
+    joints = {k: j.without_model_error() for k, j in bones.joints.items()}
+    est = estimate_joints(inputs, bones.surfaces, bones.landmarks, joints, say, bones.dropped, skin=skin)
+    gate_registrations(inputs, est)
+    say("building the model")
+    pm, intercepts = build_model(inputs, est, joints, say)
+    centres = ("hip", "knee", "ankle")
+    lengths = fuse_segment_lengths({f"{j}_{s}": joints[f"{j}_{s}"].centre for s in inputs.sides for j in centres},
+                                   {f"{j}_{s}": est.centres[s][j].motion for s in inputs.sides for j in centres},
+                                   inputs.sides)
+    notes = list(est.notes) + [f"landmarks of {b}: {', '.join(r.flags)} ({'; '.join(r.notes) or 'see landmarks.json'})"
+                               for b, r in bones.landmarks.bones.items() if r.flags]
+    summary = SubjectSummary(inputs.folder.name, str(inputs.folder), list(inputs.sides), sorted(inputs.trials),
+                             inputs.functional, bones.dropped, notes, pm.parameters.sources, est, lengths, intercepts)
+    truth = truth_in_static_lab(inputs)
+    with replaced_dir(out) as stage:
+        write_bone_files(stage, bones, fits=False)
+        say("writing meshes and model")
+        mesh_files = write_meshes(pm, bone_meshes_lab(bones.surfaces, est, inputs.sides), inside(stage, "meshes"))
+        save_model_json(pm, inside(stage, "model.json"), mesh_files)
+        save_model_osim(pm, inside(stage, "model.osim"), mesh_files)
+        ik, summary.ik = solve_trials(pm, inputs, stage, say)
+        summary.chain_blend = chain_blend(inputs, stage, summary.notes, truth is not None)
+        if truth is not None:
+            rot = [c.name for c in pm.model.coordinates if c.kind == "rotational"]
+            summary.truth = compare_with_truth(inputs, truth, est, ik, rot)
+        if report:
+            from ..presentation.subject_report import write_subject_report
+
+            say("writing report.html")
+            write_subject_report(inside(stage, "report.html"), summary, ik, bones)
+        write_summary(inside(stage, "summary.json"), summary)
+    return summary.to_json()
+
+
+def read_subject_bones(inputs: SubjectInputs, volume, say) -> tuple[SubjectInputs, object]:
+    """The subject's bone surfaces, landmarks and joints (`personalize.bone_set.BoneSet`), and the inputs
+    restricted to the sides with both bones (femur, tibia) and markers.
+
+    Raises
+    ------
+    InputError : no pelvis, or no side with both bones and markers
+    """
+    from ..bone_set import analyse_bones
+    from ..surfaces import load_bones, surfaces_from_labels
+
+    say(f"bone surfaces from {inputs.bones.name}")
+    if volume is not None:
+        surfaces = surfaces_from_labels(volume, eager_points=False, progress=lambda b: say(f"surface {b}"))
+    else:
+        surfaces = load_bones(inputs.bones, inputs.label_map, eager_points=False, progress=lambda b: say(f"surface {b}"))
+    bone_sides = {s for s in ("r", "l") if f"femur_{s}" in surfaces and f"tibia_{s}" in surfaces}
+    if "pelvis" not in surfaces:
+        raise InputError(inputs.bones, "no pelvis among the bones: the hip centres cannot be registered")
+    sides = tuple(s for s in inputs.sides if s in bone_sides)
+    if not sides:
+        raise InputError(inputs.folder, f"the bones are of side(s) {', '.join(sorted(bone_sides)) or 'none'} but the markers "
+                                        f"of side(s) {', '.join(inputs.sides)}: no side with both femur/tibia and markers")
+    say("detecting landmarks")
+    bones = analyse_bones(surfaces, input=inputs.bones, progress=lambda b: say(f"landmarks {b}"))
+    return replace(inputs, sides=sides), bones
+
+
+def build_model(inputs: SubjectInputs, est, joints: dict, say) -> tuple[object, dict]:
+    """The personalised model (`personalize.model_builder.PersonalModel`) with fitted and fused knee laws.
+
+    Built once from the joint estimates to fit the knee laws (`knee_law.fit_knee_laws` on the
+    non-functional trials), then again with the laws.  Returns the model and side -> `KneeIntercept`.
+    """
+    from ..model_builder import build_personal_model
+    from ..registration import static_marker_positions
+    from .knee_law import fit_knee_laws, fuse_knee_intercepts
+    from .model import subject_parameters
+
+    params = subject_parameters(inputs, est, static_marker_positions(inputs.static))
+    pm = build_personal_model(params)
+    standing: dict = {}
+    laws = fit_knee_laws(pm, [t for k, t in sorted(inputs.trials.items()) if not k.startswith("functional")], say,
+                         standing=standing)
+    laws, intercepts, law_sources = fuse_knee_intercepts(laws, standing, joints)
+    sources = dict(params.sources)
+    sources.pop("knee law", None)
+    sources.update(law_sources)
+    sides = {s: replace(sp, knee_law=laws[s][0]) for s, sp in params.sides.items()}
+    return build_personal_model(replace(params, sides=sides, sources=sources)), intercepts

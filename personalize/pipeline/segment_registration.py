@@ -1,0 +1,58 @@
+"""Registration of a leg segment from its markers plus the proximal joint centre already located in the lab.
+
+A joint centre is a point of both bones: once the fused hip centre is known in
+the lab, the femur is registered from its markers (`personalize.marker_registration.marker_correspondences`)
+and that centre, the shank from its markers and the fused knee centre, the foot
+from its markers and the fused ankle centre, so each MRI joint centre and axis
+reaches the lab with its propagated covariance.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from lowerlimb.errors import InputError
+from lowerlimb.estimates import Gaussian
+
+from ..marker_registration import marker_correspondences
+from ..registration import Registration
+
+__all__ = ["register_with_centre", "toe_landmark"]
+
+
+def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static: dict, meshes: dict,
+                         centre_mri: Gaussian | None, centre_lab: Gaussian | None, axis=None, virtual=None,
+                         fallback=()) -> Registration:
+    """Register one segment from its markers plus one joint centre known in both frames.
+
+    ``axis = (point, direction)`` (scanner frame): the landmarks are projected on
+    that joint axis first (`marker_correspondences`).  ``virtual``: {marker name:
+    (scanner point, outward normal)} for markers over a point that is not itself a
+    landmark (TOE over the mid-point of the first and fifth metatarsal heads).
+    ``fallback``: extra (name, mri `Gaussian`, lab `Gaussian`) pairs used only when
+    fewer than 3 correspondences are available (a Plug-in-Gait marker set without
+    medial knee/ankle markers: the distal joint centre of Plug-in-Gait stands in,
+    and the MRI estimates of that segment are then not independent of the motion ones).
+    """
+    corr = marker_correspondences(bones, bone_names, marker_names, static, surfaces=meshes, axis=axis)
+    for n, (p, nrm) in (virtual or {}).items():
+        if n in static:
+            corr.add_marker(n, Gaussian(p, np.zeros((3, 3))), static[n], nrm)
+    if centre_mri is not None and centre_lab is not None:
+        corr.add("joint_centre", centre_mri, centre_lab)
+    if len(corr) < 3:
+        for name, mri, lab in fallback:
+            corr.add(name, mri, lab)
+    if len(corr) < 3:
+        raise InputError(seg, f"only {len(corr)} correspondences ({', '.join(corr.names) or 'none'}) to register the segment")
+    return corr.register(seg)
+
+
+def toe_landmark(calcn, S: str) -> dict:
+    """Virtual TOE landmark: mid-point of the metatarsal heads (D1M, D5M), normal = the foot frame's up (Y) axis."""
+    if calcn is None:
+        return {}
+    lm, fr = calcn.landmarks, calcn.frames
+    if f"{S}D1M" not in lm or f"{S}D5M" not in lm or "foot" not in fr:
+        return {}
+    mid = 0.5 * (lm[f"{S}D1M"].position + lm[f"{S}D5M"].position)
+    return {f"{S}TOE": (mid, np.asarray(fr["foot"]["rotation"], float)[:, 1])}

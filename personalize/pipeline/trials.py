@@ -1,0 +1,101 @@
+"""The kinematics of every trial on the personalised model: IK and the blended hip-first / foot-first chains."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lowerlimb.atomic import inside
+from lowerlimb.errors import FitError, InputError
+
+from .inputs import SubjectInputs
+
+__all__ = ["TrialFit", "solve_trials", "chain_blend"]
+
+
+@dataclass(frozen=True)
+class TrialFit:
+    """IK marker residuals of one trial (summary.json ``ik``)."""
+
+    rms_mean_mm: float
+    rms_max_mm: float
+    frames: int
+    worst_marker: str
+
+    def summary(self) -> dict:
+        return {"rms_mean_mm": self.rms_mean_mm, "rms_max_mm": self.rms_max_mm, "frames": self.frames,
+                "worst_marker": self.worst_marker}
+
+
+def solve_trials(pm, inputs: SubjectInputs, stage: Path, say) -> tuple[dict, dict]:
+    """IK (`kinematics.algorithms.ik.solve_ik`) of the static and every motion trial on the model `pm`.
+
+    Writes ``kinematics/<trial>.mot`` (coordinates; rotations in deg) and ``kinematics/<trial>_marker_errors.sto``
+    (|model - measured| per marker, m) into `stage`.  Returns (trial -> IK result, trial -> `TrialFit`).
+    """
+    from kinematics.algorithms.ik import solve_ik
+    from kinematics.io.storage import write_mot, write_sto
+
+    results, fits = {}, {}
+    rot = [c.name for c in pm.model.coordinates if c.kind == "rotational"]
+    for name in ["static"] + sorted(inputs.trials):
+        trial = inputs.static if name == "static" else inputs.trials[name]
+        say(f"IK {name}")
+        res = solve_ik(pm.model, trial)
+        results[name] = res
+        write_mot(inside(stage, f"kinematics/{name}.mot"), pm.model.coordinate_names, res.time, res.q, rotational=rot,
+                  name=f"IK {name}")
+        write_sto(inside(stage, f"kinematics/{name}_marker_errors.sto"), list(res.markers), res.time, res.marker_errors,
+                  header_extra=["marker errors |model - measured|, m"], name="MarkerErrors")
+        me = np.nanmean(res.marker_errors, axis=0)
+        fits[name] = TrialFit(float(np.nanmean(res.rms) * 1e3), float(np.nanmax(res.rms) * 1e3), int(res.q.shape[0]),
+                              f"{res.markers[int(np.nanargmax(me))]} {np.nanmax(me) * 1e3:.1f} mm")
+    return results, fits
+
+
+def chain_blend(inputs: SubjectInputs, stage: Path, notes: list, with_truth: bool) -> dict:
+    """Per-frame Gaussian blend of the hip-first and foot-first chains of every dynamic trial (`kinematics.gait.chain_blend`).
+
+    Writes ``kinematics/<trial>_chains.mot`` (Plug-in-Gait angles of the blended segments, deg) and
+    ``kinematics/<trial>_chain_weights.sto`` (the foot-to-hip chain's weight per segment); returns the median
+    weights and, for phantoms, the angle RMSE of each chain and of the blend against the true Plug-in-Gait angles
+    of the gait trials (``truth/<trial>_angles.mot``).
+    """
+    from kinematics.gait.reconstruction import ANGLE_COLUMNS, reconstruct
+    from kinematics.io.storage import read_mot, write_mot, write_sto
+
+    func = inputs.trials.get(inputs.functional) if inputs.functional else None
+    out: dict = {"median_foot_to_hip_weight": {}, "files": "kinematics/<trial>_chains.mot (deg), "
+                 "kinematics/<trial>_chain_weights.sto (weight of the foot-to-hip chain; Plug-in-Gait has 1 - w)"}
+    rmse: dict = {}
+    for name, trial in sorted(inputs.trials.items()):
+        if name == inputs.functional or name.startswith("functional"):
+            continue
+        try:
+            rec = reconstruct(trial, "blend", static=inputs.static, subject=inputs.subject, functional=func,
+                              check_static=False)
+        except (InputError, FitError) as exc:
+            notes.append(f"chain blend of {name}: {exc}")
+            continue
+        recs = {**rec.chains, "blend": rec}
+        write_mot(inside(stage, f"kinematics/{name}_chains.mot"), ANGLE_COLUMNS, rec.time, rec.angle_table(),
+                  rotational=ANGLE_COLUMNS, name=f"blended chains {name}")
+        segs = sorted(rec.weights)
+        write_sto(inside(stage, f"kinematics/{name}_chain_weights.sto"), segs, rec.time,
+                  np.column_stack([rec.weights[k] for k in segs]),
+                  header_extra=["weight of the foot-to-hip chain per segment and frame (0-1)"], name="ChainWeights")
+        out["median_foot_to_hip_weight"][name] = {k: float(np.nanmedian(v)) for k, v in rec.weights.items()
+                                                  if np.isfinite(v).any()}
+        tpath = inputs.folder / "truth" / f"{name}_angles.mot"
+        if with_truth and name.startswith("gait") and tpath.is_file():
+            tab = read_mot(tpath)
+            tv = tab.values if tab.in_degrees else np.degrees(tab.values)
+            for m, r in recs.items():
+                d = np.degrees(r.angle_table()) - np.array([np.interp(r.time, tab.time, tv[:, tab.columns.index(c)])
+                                                            for c in ANGLE_COLUMNS]).T
+                rmse.setdefault(m, []).append(np.sqrt(np.nanmean(d**2, axis=0)))
+    if rmse:
+        out["angle_rmse_deg_mean_over_angles"] = {m: float(np.mean(v)) for m, v in rmse.items()}
+        out["angle_rmse_deg"] = {m: dict(zip(ANGLE_COLUMNS, np.mean(v, axis=0).tolist())) for m, v in rmse.items()}
+    return out
