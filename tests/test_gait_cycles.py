@@ -154,6 +154,33 @@ def test_mocap_pig_strikes_from_plates_and_kinematics(shared_data):
     assert [(c.start.frame, c.off.frame, c.end.frame) for c in gait_cycles(ev, "R")] == [(42, 126, 166)]
 
 
+def test_c3d_events_of_a_cropped_trial(tmp_path):
+    """Nexus' EVENT group on a trial whose first frame is 100 (1-based): times in read_c3d's time base,
+    frames 0-based in the trial; a group with fewer TIMES than USED is refused naming the file."""
+    import ezc3d
+
+    from kinematics.io.c3d import read_c3d, write_c3d
+
+    trial = MarkerTrial(("A",), np.ones((50, 1, 3)), 100.0, np.arange(50) / 100.0, "cropped")
+    write_c3d(tmp_path / "t.c3d", trial)
+    c = ezc3d.c3d(str(tmp_path / "t.c3d"))
+    c["header"]["points"]["first_frame"] = 99          # ezc3d's 0-based first frame
+    c.add_parameter("EVENT", "USED", [3])
+    c.add_parameter("EVENT", "CONTEXTS", ["Right", "Left", "General"])
+    c.add_parameter("EVENT", "LABELS", ["Foot Strike", "Foot Off", "Event"])
+    c.add_parameter("EVENT", "TIMES", np.array([[0.0, 0.0, 0.0], [1.10, 1.30, 1.2]]))
+    c.write(str(tmp_path / "ev.c3d"))
+    read = read_c3d(tmp_path / "ev.c3d")
+    ev = c3d_events(tmp_path / "ev.c3d")
+    assert [(e.side, e.kind, e.frame) for e in ev] == [("R", "strike", 11), ("L", "off", 31)]
+    for e in ev:
+        assert abs(read.time[e.frame] - e.time) < 1e-6
+    c.add_parameter("EVENT", "USED", [5])
+    c.write(str(tmp_path / "bad.c3d"))
+    with pytest.raises(InputError, match=r"bad\.c3d: EVENT:USED is 5"):
+        c3d_events(tmp_path / "bad.c3d")
+
+
 def test_treadmill_walk_zeni_matches_ground_reactions(shared_data):
     """subject01_walk1 (level treadmill walk, 60 Hz): every Zeni event within 0.035 s of the 20 N GRF event."""
     from kinematics.io.storage import read_mot, read_trc

@@ -145,29 +145,37 @@ def events_from_vertical_force(time: np.ndarray, vertical: np.ndarray, side: str
     return sorted(ev, key=lambda e: e.time)
 
 
-def c3d_events(path: str | os.PathLike, first_frame_time: float = 0.0) -> list[GaitEvent]:
+def c3d_events(path: str | os.PathLike) -> list[GaitEvent]:
     """Gait events stored in a C3D's EVENT group (as Vicon Nexus writes them); [] when there are none.
 
     ``EVENT:CONTEXTS`` "Right"/"Left", ``EVENT:LABELS`` "Foot Strike"/"Foot Off", ``EVENT:TIMES``
-    (2, n) minutes and seconds from the start of the capture; `first_frame_time` (s) is subtracted
-    (the trial's first frame / POINT:RATE) and the frame is the nearest marker frame.
+    (2, n) minutes and seconds from the start of the capture (0 s at its frame 1).  The event's
+    time is in `kinematics.io.c3d.read_c3d`'s time base (which starts at the trial's first frame
+    / POINT:RATE), its frame the 0-based index of the nearest marker frame of the trial.
     """
     c = open_c3d(path)
     grp = c["parameters"].get("EVENT", {})
     rate = float(np.ravel(c["parameters"]["POINT"]["RATE"]["value"])[0])
+    first = int(np.ravel(c["header"]["points"].get("first_frame", 0))[0])
     used = int(np.ravel(grp.get("USED", {}).get("value", [0]) or [0])[0])
     if used == 0:
         return []
-    times = np.asarray(grp["TIMES"]["value"], float).reshape(2, -1)
-    labels = [str(v).strip().lower() for v in grp["LABELS"]["value"]]
-    contexts = [str(v).strip().lower() for v in grp["CONTEXTS"]["value"]]
+    try:
+        times = np.asarray(grp["TIMES"]["value"], float).reshape(2, -1)
+        labels = [str(v).strip().lower() for v in grp["LABELS"]["value"]]
+        contexts = [str(v).strip().lower() for v in grp["CONTEXTS"]["value"]]
+    except (KeyError, ValueError) as exc:
+        raise InputError(path, f"EVENT group without readable TIMES, LABELS and CONTEXTS ({exc})") from None
+    if min(times.shape[1], len(labels), len(contexts)) < used:
+        raise InputError(path, f"EVENT:USED is {used} but TIMES/LABELS/CONTEXTS hold {times.shape[1]}/"
+                               f"{len(labels)}/{len(contexts)} events")
     ev = []
     for k in range(used):
-        t = times[0, k] * 60.0 + times[1, k] - first_frame_time
+        t = float(times[0, k] * 60.0 + times[1, k])
         side = {"right": "R", "left": "L"}.get(contexts[k])
         kind = {"foot strike": "strike", "foot off": "off"}.get(labels[k])
         if side and kind:
-            ev.append(GaitEvent(side, kind, int(round(t * rate)), float(t), "c3d"))
+            ev.append(GaitEvent(side, kind, int(round(t * rate)) - first, t, "c3d"))
     return sorted(ev, key=lambda e: e.time)
 
 
