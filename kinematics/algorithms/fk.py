@@ -48,9 +48,6 @@ def as_q(model: Model, q) -> tuple[np.ndarray, bool]:
     return q2, single
 
 
-_as_q = as_q        # former private name, kept for existing importers
-
-
 @dataclass(frozen=True, eq=False)
 class KinematicState:
     """Result of forward kinematics for N poses (arrays indexed by ``model.bodies``).
@@ -129,9 +126,6 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
-_cross = cross                  # former private name, kept for existing importers
-
-
 def column_scatter(model: Model) -> np.ndarray:
     """Matrix A (K, n_q) with A[k, column_coordinate[k]] = 1: sums joint-coordinate columns onto coordinates."""
     K = model.column_coordinate.size
@@ -160,9 +154,6 @@ def points_jacobian(model: Model, state: KinematicState, bodies: np.ndarray, x: 
     cols = cross(state.omega[:, None, :, :], x[:, :, None, :]) + state.v0[:, None, :, :]   # (N,P,K,3)
     cols *= mask[None, :, :, None]
     return np.einsum("npkc,kq->npcq", cols, column_scatter(model))
-
-
-_points_jacobian = points_jacobian      # former private name, kept for existing importers
 
 
 def _marker_arrays(model: Model, markers: Sequence[str] | None):

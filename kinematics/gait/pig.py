@@ -34,7 +34,7 @@ from kinematics.gait.subject import SubjectMeasurements
 
 __all__ = [
     "SegmentPose", "PiGResult", "LOWER_BODY_MARKERS",
-    "pelvis_frame", "davis_hip_offset", "hip_joint_centres", "chord_joint_centre",
+    "pelvis_frame", "davis_hip_offset", "chord_joint_centre",
     "femur_frame", "tibia_frame", "foot_frame", "cardan_yxz", "joint_angles",
     "static_foot_offsets", "plug_in_gait", "unit_vectors", "sacrum_marker", "leg_chain", "chord_centre_jacobians",
     "median_covariance",
@@ -147,12 +147,6 @@ def davis_hip_offset(subject: SubjectMeasurements, side: str, inter_asis: float)
     y = (a - c * np.sin(DAVIS_THETA)) * (1.0 if s == "L" else -1.0)
     z = -c * np.cos(DAVIS_THETA) * np.cos(DAVIS_BETA) - (at + r) * np.sin(DAVIS_BETA)
     return np.array([x, y, z])
-
-
-def hip_joint_centres(pelvis: SegmentPose, subject: SubjectMeasurements, inter_asis: float) -> tuple[np.ndarray, np.ndarray]:
-    """Right and left Davis hip centres in the lab frame, each (F, 3) m."""
-    return (pelvis.to_lab(davis_hip_offset(subject, "R", inter_asis)),
-            pelvis.to_lab(davis_hip_offset(subject, "L", inter_asis)))
 
 
 # --------------------------------------------------------------------------- chord function

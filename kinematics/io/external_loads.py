@@ -65,10 +65,6 @@ class ExternalLoad:
     point: np.ndarray
     torque: np.ndarray
 
-    def rotated(self, R) -> ExternalLoad:
-        R = np.asarray(R, float)
-        return ExternalLoad(self.name, self.body, self.time, self.force @ R.T, self.point @ R.T, self.torque @ R.T)
-
     def at(self, times) -> ExternalLoad:
         """The load linearly interpolated at `times` (zero outside the data's span)."""
         t = np.asarray(times, float)

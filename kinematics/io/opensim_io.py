@@ -378,9 +378,6 @@ def function_to_opensim(osim, f: Function):
     raise InputError(None, f"cannot export function {type(f).__name__} to OpenSim")
 
 
-_to_osim_function = function_to_opensim
-
-
 def add_coupler_constraint(osim, om, name: str, dependent: str, independent, function) -> None:
     """Add a CoordinateCouplerConstraint ``dependent = function(independent...)`` to the ``opensim.Model`` `om`.
 

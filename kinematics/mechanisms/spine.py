@@ -117,12 +117,6 @@ class SpineLayout:
     def joints(self) -> tuple[str, ...]:
         return tuple(j for r in self.regions for j in r.joints)
 
-    def region_of(self, joint: str) -> RegionSpec:
-        for r in self.regions:
-            if joint in r.joints:
-                return r
-        raise KeyError(joint)
-
 
 def vertebra_body(joint: str) -> str:
     """H-Anim segment driven by a vertebral joint: vl5 -> l5."""

@@ -60,9 +60,6 @@ def in_frame(R, x):
     return np.einsum("...ji,...j->...i", R, x)
 
 
-_mtv = in_frame
-
-
 _cross = np.cross
 
 

@@ -148,10 +148,6 @@ class LinearInequalities:
         c = LinearCoupling(self.coordinates, self.matrix, self.rhs, self.labels).over(coordinates)
         return LinearInequalities(c.coordinates, c.matrix, c.rhs, c.labels)
 
-    def violation(self, q) -> np.ndarray:
-        """max(G q - h, 0), shape (..., m)."""
-        return np.maximum(np.asarray(q, float) @ self.matrix.T - self.rhs, 0.0)
-
 
 @dataclass(frozen=True, eq=False)
 class CoordinateCoupler:

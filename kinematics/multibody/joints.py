@@ -231,7 +231,6 @@ class TransformAxis:
                 raise ValueError(f"function of {self.function.n_inputs} inputs on an axis listing {len(self.coordinates)} coordinates")
 
 
-_ZERO = Constant(0.0)
 _I3 = np.eye(3)
 _I3.setflags(write=False)
 
@@ -239,9 +238,6 @@ _I3.setflags(write=False)
 def is_identity_function(f: Function) -> bool:
     """f(q) = q exactly (identity linear function)."""
     return type(f) is Linear and f.slope == 1.0 and f.intercept == 0.0
-
-
-_is_unit = is_identity_function        # former private name, kept for existing importers
 
 
 @dataclass(frozen=True, eq=False)

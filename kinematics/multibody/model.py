@@ -13,7 +13,6 @@ Bodies are stored in topological order: ``bodies[0]`` is the ground and
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -21,7 +20,7 @@ from kinematics.multibody.coupling import CoordinateCoupler, LinearCoupling, Lin
 from kinematics.multibody.functions import read_only
 from kinematics.multibody.joints import Joint, Transform
 
-__all__ = ["Body", "Coordinate", "Marker", "Frame", "Model", "GROUND", "build_model"]
+__all__ = ["Body", "Coordinate", "Marker", "Frame", "Model", "GROUND"]
 
 GROUND = "ground"
 
@@ -311,9 +310,6 @@ class Model:
         kw.update(changes)
         return Model(**kw)
 
-    def with_markers(self, markers: Iterable[Marker]) -> "Model":
-        return self.replace(markers=tuple(markers))
-
     def with_couplings(self, couplings: LinearCoupling | None) -> "Model":
         return self.replace(couplings=couplings)
 
@@ -324,9 +320,3 @@ class Model:
         lo = np.where(np.isfinite(lo), lo, d - np.where(self.rotational, span, 0.5))
         hi = np.where(np.isfinite(hi), hi, d + np.where(self.rotational, span, 0.5))
         return lo + (hi - lo) * rng.random((n, self.n_q))
-
-
-def build_model(bodies: Sequence[Body], joints: Sequence[Joint], coordinates: Sequence[Coordinate],
-                markers: Sequence[Marker] = (), **kw) -> Model:
-    """Convenience constructor (same as ``Model(...)``)."""
-    return Model(tuple(bodies), tuple(joints), tuple(coordinates), tuple(markers), **kw)
