@@ -182,6 +182,8 @@ def _outward(points: np.ndarray, normals: np.ndarray, h: float, tree) -> np.ndar
     """
     import scipy.ndimage as ndi
 
+    # at most 400 voxels along the bone: a 0.2 mm cloud of a femur would otherwise need ~5e8 voxels
+    h = max(h, float(np.ptp(points, axis=0).max()) / 400.0)
     K = 10
     lo = points.min(axis=0) - (K + 4) * h
     idx = np.floor((points - lo) / h).astype(int)
