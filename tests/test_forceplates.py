@@ -40,6 +40,18 @@ corners[:, :, 0] = centre + 0.3 * (corners[:, :, 0] - centre)
 c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"] = corners
 c.write(out + "/shrunk.c3d")
 
+c = load()  # plate 1 with zero corners, and a NaN sample in plate 2's first channel
+corners = np.array(c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"], float)
+corners[:, :, 0] = 0.0
+c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"] = corners
+c.write(out + "/nocorners.c3d")
+c = load()
+an = np.array(c["data"]["analogs"], float)
+ch = int(np.array(c["parameters"]["FORCE_PLATFORM"]["CHANNEL"]["value"])[0, 1]) - 1
+an[0, ch, 500] = np.nan
+c["data"]["analogs"] = an
+c.write(out + "/nan_analog.c3d")
+
 c = load()  # no force platform
 c["parameters"]["FORCE_PLATFORM"]["USED"]["value"] = np.array([0])
 c.write(out + "/noplates.c3d")
@@ -222,6 +234,15 @@ def test_analog_rate_not_consistent_refused(trial, tmp_path):
     bad.write_bytes(data[:j] + struct.pack("<f", 1000.0) + data[j + 4:])
     with pytest.raises(InputError, match="ANALOG:RATE 1000 Hz"):
         read_force_plates(bad)
+
+
+def test_degenerate_corners_and_non_finite_channels_refused(modified):
+    """Corrupt plate data is refused, never read as a plate that was never loaded (exit 0, kinematics only)."""
+    with pytest.raises(InputError, match=r"nocorners\.c3d: force plate 1: FORCE_PLATFORM:CORNERS do not span"):
+        read_force_plates(modified / "nocorners.c3d")
+    with pytest.raises(InputError, match=r"nan_analog\.c3d: force plate 2: channel .* 1 non-finite sample\(s\) "
+                                         r"\(first at analog sample 501\)"):
+        read_force_plates(modified / "nan_analog.c3d")
 
 
 def test_no_plates_kinematics_only(modified):

@@ -379,12 +379,21 @@ def read_force_plates(path: str | os.PathLike, *, threshold: float = DEFAULT_THR
             else:
                 scale[j] = 1.0 if kind is _FORCE else lscale  # N, N x point unit, point unit
                 notes.append(f"channel {ch_labels[j]} has no unit; taken as N / N {length_unit} / {length_unit}")
+        bad = ~np.isfinite(raw)
+        if bad.any():   # a gap in a plate channel would read as no load (or a NaN wrench) mid-stance
+            i, j = np.argwhere(bad)[0]
+            raise InputError(path, f"force plate {k + 1}: channel {ch_labels[j]} has {int(bad[:, j].sum())} "
+                                   f"non-finite sample(s) (first at analog sample {i + 1})")
         if ptype == 4:
             if cal_all.ndim != 3 or cal_all.shape[2] <= k or cal_all.shape[0] < 6 or cal_all.shape[1] < 6:
                 raise InputError(path, f"force plate {k + 1} is type 4 but FORCE_PLATFORM:CAL_MATRIX has no 6x6 matrix for it")
             raw = raw @ cal_all[:6, :6, k].T
         raw = raw * scale
         corners = corners_all[:3, :4, k].T * lscale
+        if not np.all(np.isfinite(corners)) or min(np.linalg.norm(corners[0] - corners[1]),
+                                                   np.linalg.norm(corners[0] - corners[3])) < 0.01:
+            raise InputError(path, f"force plate {k + 1}: FORCE_PLATFORM:CORNERS do not span a plate "
+                                   "(edges under 1 cm or not finite)")
         centre = corners.mean(axis=0)
         rot = _plate_frame(corners)
         origin = origin_all[:3, k] * lscale
