@@ -194,63 +194,70 @@ def _expected(tok: str) -> float | None:
         return None
 
 
-@pytest.mark.slow
-def test_fuzz_trc(seeds, tmp_path):
-    from kinematics.io.storage import MAX_COORDINATE_M, read_trc
+def _check_trc(tr, ref, replaced) -> None:
+    from kinematics.io.storage import MAX_COORDINATE_M
 
-    text = seeds["trc"].read_text()
-    ref = read_trc(seeds["trc"])
+    check_trial(tr, MAX_COORDINATE_M)
+    assert np.all(np.diff(tr.time) > 0)
+    if replaced is None:
+        return
+    row, field, tok = replaced
+    want = _expected(tok)
+    assert want is not None                   # a non-number was accepted
+    if field == 1:
+        assert tr.time[row] == want
+    elif field >= 2 + 3 * len(ref.names):
+        assert not tok.strip()                # a value beyond the markers' columns is refused
+    else:
+        m, c = divmod(field - 2, 3)
+        got = tr.positions[row, m]
+        if math.isnan(want):
+            assert np.isnan(got).all()        # a gap is the whole sample
+        else:
+            assert got[c] == pytest.approx(want * 1e-3, rel=1e-12, abs=0)
+            keep = [k for k in range(3) if k != c]
+            assert np.allclose(got[keep], ref.positions[row, m, keep], equal_nan=True)
+
+
+def _check_mot(tab, ref, replaced) -> None:
+    from kinematics.io.storage import MAX_TABLE_VALUE
+
+    assert tab.values.shape == (tab.time.shape[0], len(tab.columns)) and len(set(tab.columns)) == len(tab.columns)
+    assert np.all(np.isfinite(tab.time)) and np.all(np.diff(tab.time) >= 0)
+    v = tab.values[~np.isnan(tab.values)]
+    assert np.all(np.abs(v) <= MAX_TABLE_VALUE)
+    if replaced is None:
+        return
+    row, field, tok = replaced
+    want = _expected(tok)
+    assert want is not None and tok.strip()   # neither a non-number nor a missing field is accepted
+    got = tab.values[row, field - 1]            # MOT fields: time, then the columns
+    if math.isnan(want):
+        assert math.isnan(got)
+    else:
+        assert got == want
+        other = [k for k in range(len(tab.columns)) if k != field - 1]
+        assert np.array_equal(tab.values[row, other], ref.values[row, other])
+
+
+# reader, first data line of the seed (TRC: after its 5 header lines and a blank one; MOT: after "time..."), check
+TEXT_FORMATS = {
+    "trc": ("read_trc", lambda lines: 6, _check_trc),
+    "mot": ("read_mot", lambda lines: next(i for i, ln in enumerate(lines) if ln.startswith("time")) + 1, _check_mot),
+}
+
+
+@pytest.mark.parametrize("fmt", [pytest.param("trc", marks=pytest.mark.slow), "mot"])
+def test_fuzz_text(seeds, tmp_path, fmt):
+    from kinematics.io import storage
+
+    reader, first_data_line, check = TEXT_FORMATS[fmt]
+    read = getattr(storage, reader)
+    text = seeds[fmt].read_text()
+    data_start = first_data_line(text.split("\n"))
+    ref = read(seeds[fmt])
     cases = Cases()
-    path = tmp_path / "f.trc"
-
-    @SETTINGS
-    @given(st.lists(_text_edit(), min_size=1, max_size=3))
-    def case(edits):
-        t, replaced = text, None
-        for e in edits:
-            t, r = _apply_text(t, e, 6)
-            replaced = r if len(edits) == 1 else None
-        path.write_bytes(_enc(t))
-        cases.n += 1
-        try:
-            tr = read_trc(path)
-        except InputError as exc:
-            _one_line_error(exc, path)
-            cases.refused += 1
-            return
-        check_trial(tr, MAX_COORDINATE_M)
-        assert np.all(np.diff(tr.time) > 0)
-        if replaced is not None:
-            row, field, tok = replaced
-            want = _expected(tok)
-            assert want is not None                   # a non-number was accepted
-            if field == 1:
-                assert tr.time[row] == want
-            elif field >= 2 + 3 * len(ref.names):
-                assert not tok.strip()                # a value beyond the markers' columns is refused
-            else:
-                m, c = divmod(field - 2, 3)
-                got = tr.positions[row, m]
-                if math.isnan(want):
-                    assert np.isnan(got).all()        # a gap is the whole sample
-                else:
-                    assert got[c] == pytest.approx(want * 1e-3, rel=1e-12, abs=0)
-                    keep = [k for k in range(3) if k != c]
-                    assert np.allclose(got[keep], ref.positions[row, m, keep], equal_nan=True)
-
-    case()
-    assert cases.n >= FUZZ_CASES and 0 < cases.refused < cases.n
-
-
-def test_fuzz_mot(seeds, tmp_path):
-    from kinematics.io.storage import MAX_TABLE_VALUE, read_mot
-
-    text = seeds["mot"].read_text()
-    lines = text.split("\n")
-    data_start = next(i for i, ln in enumerate(lines) if ln.startswith("time")) + 1
-    ref = read_mot(seeds["mot"])
-    cases = Cases()
-    path = tmp_path / "f.mot"
+    path = tmp_path / f"f.{fmt}"
 
     @SETTINGS
     @given(st.lists(_text_edit(), min_size=1, max_size=3))
@@ -262,26 +269,12 @@ def test_fuzz_mot(seeds, tmp_path):
         path.write_bytes(_enc(t))
         cases.n += 1
         try:
-            tab = read_mot(path)
+            result = read(path)
         except InputError as exc:
             _one_line_error(exc, path)
             cases.refused += 1
             return
-        assert tab.values.shape == (tab.time.shape[0], len(tab.columns)) and len(set(tab.columns)) == len(tab.columns)
-        assert np.all(np.isfinite(tab.time)) and np.all(np.diff(tab.time) >= 0)
-        v = tab.values[~np.isnan(tab.values)]
-        assert np.all(np.abs(v) <= MAX_TABLE_VALUE)
-        if replaced is not None:
-            row, field, tok = replaced
-            want = _expected(tok)
-            assert want is not None and tok.strip()   # neither a non-number nor a missing field is accepted
-            got = tab.values[row, field - 1]            # MOT fields: time, then the columns
-            if math.isnan(want):
-                assert math.isnan(got)
-            else:
-                assert got == want
-                other = [k for k in range(len(tab.columns)) if k != field - 1]
-                assert np.array_equal(tab.values[row, other], ref.values[row, other])
+        check(result, ref, replaced)
 
     case()
     assert cases.n >= FUZZ_CASES and 0 < cases.refused < cases.n

@@ -1,6 +1,8 @@
 """Trial inverse dynamics (subject01_walk1 on subject01_simbody.osim) against OpenSim's InverseDynamicsTool."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -34,6 +36,35 @@ def result(trial):
                                   start=0.4, end=1.6)
 
 
+@pytest.fixture(scope="module")
+def opensim_id(opensim, shared_data):
+    """OpenSim's InverseDynamicsTool on subject01_walk1_ik.mot with the given external loads (6 Hz, 0.5-1.6 s).
+
+    Returns run(loads_xml, results_dir) -> the generalised forces it wrote (`Table`).
+    """
+    from kinematics.io.storage import read_sto
+
+    d = shared_data / GAIT
+
+    def run(loads_xml, results_dir):
+        tool = opensim.InverseDynamicsTool()
+        om = opensim.Model(str(d / "subject01_simbody.osim"))  # keep a reference: the tool does not own it
+        tool.setModel(om)
+        tool.setCoordinatesFileName(str(d / "subject01_walk1_ik.mot"))
+        tool.setExternalLoadsFileName(str(loads_xml))
+        tool.setLowpassCutoffFrequency(6.0)
+        tool.setStartTime(0.5)  # OpenSim would also report its padded (reflected) frames before 0.5 s
+        tool.setEndTime(1.6)
+        excluded = opensim.ArrayStr()
+        excluded.append("muscles")
+        tool.setExcludedForces(excluded)
+        tool.setResultsDir(str(results_dir))
+        tool.setOutputGenForceFileName("id.sto")
+        assert tool.run()
+        return read_sto(Path(results_dir) / "id.sto")
+    return run
+
+
 def _rel_rms(res, table):
     out = {}
     for i, lab in enumerate(res.labels):
@@ -52,26 +83,10 @@ def test_loads_read_and_pelvis_translations(trial):
     assert tab.time[0] == 0.5  # this IK result starts at 0.5 s
 
 
-def test_matches_opensim_inverse_dynamics_tool(trial, result, opensim, shared_data, tmp_path):
+def test_matches_opensim_inverse_dynamics_tool(trial, result, opensim_id, shared_data, tmp_path):
     """OpenSim's InverseDynamicsTool on the same files in the same test: every column within 0.01 % of its peak."""
-    from kinematics.io.storage import read_sto
 
-    d = shared_data / GAIT
-    tool = opensim.InverseDynamicsTool()
-    om = opensim.Model(str(d / "subject01_simbody.osim"))  # keep a reference: the tool does not own it
-    tool.setModel(om)
-    tool.setCoordinatesFileName(str(d / "subject01_walk1_ik.mot"))
-    tool.setExternalLoadsFileName(str(d / "subject01_walk1_grf.xml"))
-    tool.setLowpassCutoffFrequency(6.0)
-    tool.setStartTime(0.5)  # OpenSim would also report its padded (reflected) frames before 0.5 s
-    tool.setEndTime(1.6)
-    excluded = opensim.ArrayStr()
-    excluded.append("muscles")
-    tool.setExcludedForces(excluded)
-    tool.setResultsDir(str(tmp_path))
-    tool.setOutputGenForceFileName("id.sto")
-    assert tool.run()
-    ref = read_sto(tmp_path / "id.sto")
+    ref = opensim_id(shared_data / GAIT / "subject01_walk1_grf.xml", tmp_path)
     assert ref.n_frames == result.time.shape[0] == 67
     rel = _rel_rms(result, ref)
     assert len(rel) == 23
@@ -255,7 +270,7 @@ def test_cli_loads_writes_opensim_files(cli_loads, trial):
     assert "N m" in (cli_loads / "inverse_dynamics.sto").read_text().split("endheader")[0]
 
 
-def test_cli_c3d_split_belt_matches_loads(cli_loads, c3ds, shared_data, tmp_path, opensim):
+def test_cli_c3d_split_belt_matches_loads(cli_loads, c3ds, shared_data, tmp_path, opensim_id):
     """The same walk from a C3D (Z-up lab, two plates): feet assigned, rotated to OpenSim's ground, and the
     moments within 1 % (joints) / 2 % (pelvis residuals) of their peak of the .mot/.xml run (the plates are
     box-averaged to the 60 Hz frames, the .mot is sampled at 600 Hz)."""
@@ -278,22 +293,7 @@ def test_cli_c3d_split_belt_matches_loads(cli_loads, c3ds, shared_data, tmp_path
     back = read_external_loads(out / "grf.xml")
     assert [ld.body for ld in back] == ["calcn_r", "calcn_l"]
     # OpenSim's own tool on the written grf.mot/grf.xml gives the engine's moments (the files mean what they say)
-    d = shared_data / GAIT
-    tool = opensim.InverseDynamicsTool()
-    om = opensim.Model(str(d / "subject01_simbody.osim"))
-    tool.setModel(om)
-    tool.setCoordinatesFileName(str(d / "subject01_walk1_ik.mot"))
-    tool.setExternalLoadsFileName(str(out / "grf.xml"))
-    tool.setLowpassCutoffFrequency(6.0)
-    tool.setStartTime(0.5)
-    tool.setEndTime(1.6)
-    excluded = opensim.ArrayStr()
-    excluded.append("muscles")
-    tool.setExcludedForces(excluded)
-    tool.setResultsDir(str(tmp_path))
-    tool.setOutputGenForceFileName("os.sto")
-    assert tool.run()
-    ref = read_sto(tmp_path / "os.sto")
+    ref = opensim_id(out / "grf.xml", tmp_path)
     worst = max(np.sqrt(np.mean((ref.column(c) - b.column(c)) ** 2)) / np.abs(b.column(c)).max() for c in b.columns)
     assert worst < 1e-4  # measured 1.9e-5
     assert rep["load_cutoff_hz"] is None  # --no-filter-loads (plates are filtered at the cut-off by default)
