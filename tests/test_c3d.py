@@ -41,6 +41,26 @@ def test_missing_and_corrupt_files(tmp_path):
         read_c3d(bad)
 
 
+def test_nan_with_a_valid_residual_is_a_gap_and_infinity_is_refused(tmp_path):
+    import ezc3d
+
+    trial = MarkerTrial(("A", "B"), np.ones((20, 2, 3)), 100.0, np.arange(20) / 100.0, "t")
+    write_c3d(tmp_path / "t.c3d", trial)
+    c = ezc3d.c3d(str(tmp_path / "t.c3d"))
+    pts = np.array(c["data"]["points"], float)
+    pts[0, 1, 5] = np.nan                 # residual stays 0 (valid): a float exporter's gap
+    c["data"]["points"] = pts
+    c.write(str(tmp_path / "nan.c3d"))
+    got = read_c3d(tmp_path / "nan.c3d")
+    assert np.isnan(got.positions[5, 1]).all() and np.isfinite(np.delete(got.positions, 5, axis=0)).all()
+    assert np.isfinite(got.positions[:, 0]).all()
+    pts[0, 1, 5] = np.inf
+    c["data"]["points"] = pts
+    c.write(str(tmp_path / "inf.c3d"))
+    with pytest.raises(InputError, match=r"inf\.c3d: 1 sample\(s\) marked valid are not finite"):
+        read_c3d(tmp_path / "inf.c3d")
+
+
 def test_fill_short_gaps_report_long_ones():
     tr = _trial()
     pos = tr.positions.copy()

@@ -15,8 +15,8 @@ points in length units and are read as markers.
 A file that cannot be read correctly is refused (`InputError`) rather than
 read in part: a frame count that disagrees with the header (a truncated
 file, a header saying 0 frames), a marker label given twice, labels of
-several Vicon subjects (``Name:RKNE``) unless one is chosen, a sample marked
-valid that is not finite, or a coordinate beyond `MAX_COORDINATE_M` from the
+several Vicon subjects (``Name:RKNE``) unless one is chosen, an infinite
+sample (a NaN is a gap), or a coordinate beyond `MAX_COORDINATE_M` from the
 lab origin (no lab is that large; a unit slip such as mm data declared in m
 lands there).
 """
@@ -275,7 +275,8 @@ def _positions(c3d, path) -> tuple[np.ndarray, float]:
     pts = np.asarray(c3d["data"]["points"], dtype=float)[:3]  # (3, M, F)
     res = np.asarray(c3d["data"]["meta_points"]["residuals"], dtype=float)[0]  # (M, F)
     pos = np.transpose(pts, (2, 1, 0)).copy()  # (F, M, 3)
-    invalid = (res.T < 0) | np.all(pos == 0.0, axis=2)
+    # NaN is a gap whatever its residual (float C3Ds from some exporters mark gaps so); infinity is corruption
+    invalid = (res.T < 0) | np.all(pos == 0.0, axis=2) | np.any(np.isnan(pos), axis=2)
     pos[invalid] = np.nan
     bad = ~invalid & ~np.all(np.isfinite(pos), axis=2)
     if bad.any():
