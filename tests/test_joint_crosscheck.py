@@ -13,7 +13,7 @@ import pytest
 from personalize.frames import MODEL_ERROR, Joint, joints_document, joints_from_landmarks
 from personalize.landmarks import detect_landmarks
 from personalize.landmarks.crosscheck import Estimate, cross_check, cross_check_directions
-from personalize.reference_models import (calibrate_model_error, compare_joints, coverage, error_rows,
+from personalize.evaluation.reference_models import (calibrate_model_error, compare_joints, coverage, error_rows,
                                           read_reference_joints)
 
 SETS = ("ICL_MRI", "LHDL_CT")
