@@ -26,21 +26,14 @@ def vertebral_twist(model: Model, q: np.ndarray) -> dict[str, np.ndarray]:
     twist about the vertebral axis y (swing-twist decomposition): with the
     quaternion (w, x, y, z) of R, twist = 2 atan2(y, w), wrapped to (-pi, pi].
     """
-    layout = spine_layout_of(model)
-    st = forward_kinematics(model, np.asarray(q, float))
     out = {}
-    joints = layout.joints
-    for reg in layout.regions:
+    for region, rel in _relative_rotations_by_region(model, q).items():
         tw = []
-        for jn in reg.joints:
-            i = joints.index(jn)
-            below = vertebra_body(joints[i - 1]) if i else model.joint(jn).parent
-            Rb = st.rotations[0, model.body_index(below)]
-            Rv = st.rotations[0, model.body_index(vertebra_body(jn))]
-            x, y, z, w = Rotation.from_matrix(Rb.T @ Rv).as_quat()
+        for R in rel:
+            x, y, z, w = Rotation.from_matrix(R).as_quat()
             t = 2.0 * np.arctan2(y, w)
             tw.append((t + np.pi) % (2 * np.pi) - np.pi)
-        out[reg.name] = np.array(tw)
+        out[region] = np.array(tw)
     return out
 
 
@@ -66,6 +59,16 @@ def _relative_rotations(model: Model, q: np.ndarray) -> np.ndarray:
         below = vertebra_body(joints[i - 1]) if i else model.joint(jn).parent
         out.append(st.rotations[0, model.body_index(below)].T @ st.rotations[0, model.body_index(vertebra_body(jn))])
     return np.array(out)
+
+
+def _relative_rotations_by_region(model: Model, q: np.ndarray) -> dict[str, np.ndarray]:
+    """`_relative_rotations` split per region: name -> (k, 3, 3), caudal to cranial."""
+    rel = _relative_rotations(model, q)
+    out, k = {}, 0
+    for reg in spine_layout_of(model).regions:
+        out[reg.name] = rel[k:k + len(reg.joints)]
+        k += len(reg.joints)
+    return out
 
 
 def spine_distance(model: Model, q: np.ndarray, q_ref: np.ndarray) -> float:
@@ -171,21 +174,15 @@ def swing_components(model: Model, q: np.ndarray) -> dict[str, np.ndarray]:
     Returns per region an array (k, 2) in rad: the swing rotation vector of
     the swing-twist decomposition, components about z and x.
     """
-    layout = spine_layout_of(model)
-    st = forward_kinematics(model, np.asarray(q, float))
     out = {}
-    joints = layout.joints
-    for reg in layout.regions:
+    for region, rel in _relative_rotations_by_region(model, q).items():
         rows = []
-        for jn in reg.joints:
-            i = joints.index(jn)
-            below = vertebra_body(joints[i - 1]) if i else model.joint(jn).parent
-            R = (st.rotations[0, model.body_index(below)].T @ st.rotations[0, model.body_index(vertebra_body(jn))])
+        for R in rel:
             x, y, z, w = Rotation.from_matrix(R).as_quat()
             tw = Rotation.from_quat([0.0, y, 0.0, w]) if (y * y + w * w) > 0 else Rotation.identity()
             sw = (Rotation.from_matrix(R) * tw.inv()).as_rotvec()
             rows.append((sw[2], sw[0]))
-        out[reg.name] = np.array(rows)
+        out[region] = np.array(rows)
     return out
 
 
