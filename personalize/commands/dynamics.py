@@ -49,7 +49,9 @@ def register(app: typer.Typer) -> None:
         write_joint_dynamics(d, out, plot=plot)
         t = d.result.time
         if d.kinematics_only:
-            console.print("dynamics: no ground reactions (no force plate, or none loaded): kinematics only "
+            why = (f"{len(d.contacts)} plate contact(s), none applicable to one foot (see the notes)" if d.contacts
+                   else "no force plate, or none loaded")
+            console.print(f"dynamics: no ground reactions ({why}): kinematics only "
                           f"(filtered coordinates), no joint moments -> {out}")
         else:
             ex = f", {len(d.exclude)} interval(s) excluded" if d.exclude else ""
