@@ -1,8 +1,10 @@
 """Multibody kinematics: models, joints, transmission elements, FK/IK, correlative and coupled joints, marker data.
 
-Subpackages: `multibody` (the model), `algorithms` (FK, IK, loops), `io` (files),
-`gait` (reconstruction from marker trials), `mechanisms` (correlative, transmission,
-chords, spines).  This package imports `lowerlimb` and never `personalize` or `phantoms`.
+Subpackages: `multibody` (the model), `algorithms` (FK, marker and prioritized IK, loops),
+`io` (files), `gait` (reconstruction from marker trials, kinetics), `mechanisms`
+(correlative joints, transmission, chords, spines).  This package imports `lowerlimb`
+and never `personalize`, `phantoms` or matplotlib (tables and figures live in
+`personalize.presentation`).
 """
 from kinematics.multibody.model import Body, Coordinate, Frame, Marker, Model
 from kinematics.multibody.joints import CustomJoint, ExpMapSpherical, SwingJoint, Transform, TransformAxis

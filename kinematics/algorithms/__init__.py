@@ -1,1 +1,1 @@
-"""Free functions of (model, state): forward kinematics, inverse kinematics, loop closure, segment poses, functional joints."""
+"""Free functions of (model, state): forward kinematics, marker IK (coordinate map, constrained least squares, tasks), prioritized IK (constraints, recruiting), loop closure, segment poses, functional joints."""

@@ -1,1 +1,1 @@
-"""Mechanisms: correlative joints, transmission elements, distance chords and coupled spines."""
+"""Mechanisms: correlative joints (law, fitting, transfer, OpenSim export, recovered mechanisms), transmission elements, distance chords, coupled spines and their measures."""
