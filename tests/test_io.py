@@ -137,6 +137,22 @@ def _write_folder(folder: Path, scale: float, bones=("femur_r", "tibia_r", "pate
     return out
 
 
+def test_each_bone_step_is_announced_before_it_runs(tmp_path):
+    written = _write_folder(tmp_path / "bones", 1e3, bones=("femur_r", "patella_r"))
+    done, said = [], []
+    got = load_bones(tmp_path / "bones", target_faces=500, eager_points=False, progress=done.append,
+                     status=said.append)
+    assert done == ["femur_r", "patella_r"]  # one step per bone, as without status
+    for b in done:
+        n = len(written[b].faces)
+        size = (tmp_path / "bones" / f"{b}.ply").stat().st_size / 1e6
+        assert [m for m in said if m.startswith(b + ":")] == [
+            f"{b}: reading {b}.ply ({size:.1f} MB)", f"{b}: checking and repairing {n:,} faces",
+            f"{b}: decimating {n:,} faces to 500"]
+    quiet = load_bones(tmp_path / "bones", target_faces=500, eager_points=False)
+    assert all(np.array_equal(got[b].mesh.vertices, quiet[b].mesh.vertices) for b in done)
+
+
 @pytest.mark.parametrize("scale,unit,ext", [(1e3, "mm", "ply"), (1.0, "m", "stl"), (1e3, "mm", "obj")])
 def test_mesh_folder_units(tmp_path, scale, unit, ext):
     written = _write_folder(tmp_path / "bones", scale, bones=("femur_r", "patella_r", "pelvis_no_sacrum"), ext=ext)

@@ -313,8 +313,12 @@ def test_decimation_keeps_a_closed_accurate_surface(two_bone_volume):
     labels, aff = two_bone_volume
     vol = LabelVolume(labels, aff, {"femur_r": 2, "tibia_r": 3}, "vol")
     full = surfaces_from_labels(vol, eager_points=False)
-    dec = surfaces_from_labels(vol, target_faces=8000, workers=2)
-    for bone in ("femur_r", "tibia_r"):
+    said = []
+    dec = surfaces_from_labels(vol, target_faces=8000, workers=2, status=said.append)
+    for bone, label in (("femur_r", 2), ("tibia_r", 3)):
+        n = len(full[bone].mesh.faces)
+        assert [m for m in said if m.startswith(bone)] == [f"{bone}: surfacing label {label}",
+                                                           f"{bone}: decimating {n:,} faces to 8,000"]
         m = dec[bone].mesh
         assert abs(len(m.faces) - 8000) <= 80 and m.is_watertight and m.is_winding_consistent
         assert dec[bone].volume == pytest.approx(full[bone].volume, rel=0.01)

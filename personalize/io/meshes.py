@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import trimesh
@@ -110,7 +111,8 @@ def _bone_files(folder: Path) -> tuple[dict[str, Path], list[str]]:
 
 
 def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | None = None,
-                              fix_orientation: bool = False) -> tuple[dict[str, MeshInput], dict]:
+                              fix_orientation: bool = False, status: Callable[[str], None] | None = None
+                              ) -> tuple[dict[str, MeshInput], dict]:
     """Read a folder of bone meshes or point clouds named after the bones.
 
     Files: ``<bone>.stl|ply|obj`` (``femur_r``, ``tibia_no_fib_r``,
@@ -126,6 +128,11 @@ def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | Non
 
     Returns per-bone `MeshInput` (metres) and a folder report (unit, ignored
     files, rejected bones, notes).  All meshes of a folder must share one unit.
+
+    `status`, when given, is called before each bone's reading and repair
+    with what is done and the size (``"femur_r: checking and repairing
+    7,500,000 faces"``): a large mesh takes minutes, and a display shows it
+    as its current description.
 
     Raises
     ------
@@ -150,7 +157,9 @@ def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | Non
                   if b in bones or (b in WHOLE_FOOT and any(x.endswith("_" + WHOLE_FOOT[b]) for x in from_feet & set(bones)))}
     errors: dict[str, InputError] = {}
     loaded: dict[str, tuple[Path, trimesh.Trimesh, dict, float]] = {}
+    say = status or (lambda message: None)
     for bone, f in chosen.items():
+        say(f"{bone}: reading {f.name} ({f.stat().st_size / 1e6:.1f} MB)")
         try:
             mesh, lrep = _load_mesh_file(f)
             loaded[bone] = (f, mesh, lrep, main_extent(mesh))
@@ -175,6 +184,7 @@ def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | Non
             continue
         use = unit or cands[bone][0]
         mesh.apply_scale(UNIT_SCALE[use])
+        say(f"{bone}: checking and repairing {len(mesh.faces):,} faces")
         try:
             mesh, rep = check_and_repair_mesh(mesh, "calcn" if bone in WHOLE_FOOT else bone, f,
                                               fix_orientation=fix_orientation)
@@ -201,6 +211,7 @@ def read_mesh_folder_detailed(path: str | os.PathLike, *, bones: list[str] | Non
         from .whole_foot import split_whole_foot
 
         mi = out.pop(foot)
+        say(f"{foot}: splitting the whole foot into talus, calcn and toes")
         tib = out.get(f"tibia_{side}")
         pieces, note = split_whole_foot(mi.mesh, side, tibia=tib.mesh if tib is not None else None)
         notes.append(f"{Path(mi.source).name}: {note}")

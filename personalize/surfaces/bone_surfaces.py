@@ -20,7 +20,7 @@ from lowerlimb.errors import InputError
 from personalize.io import LabelVolume, is_label_volume_path, read_label_volume, read_mesh_folder_detailed
 from personalize.io.units import PLAUSIBLE_EXTENT_M
 
-from .extraction import decimate, extract_surface, signed_volume
+from .extraction import decimate, decimation_message, extract_surface, signed_volume
 from .masks import clean_mask
 from .sampling import PointCloud, point_cloud
 
@@ -148,11 +148,14 @@ def surfaces_from_labels(volume: LabelVolume, *, bones: list[str] | None = None,
                          smoothing_iterations: int = 5, target_faces: int | None = None,
                          keep_fraction: float = 0.1, workers: int = 2, point_spacing: float = 2e-3,
                          seed: int = 0, eager_points: bool = True,
-                         progress: Callable[[str], None] | None = None) -> dict[str, BoneSurface]:
+                         progress: Callable[[str], None] | None = None,
+                         status: Callable[[str], None] | None = None) -> dict[str, BoneSurface]:
     """Extract every (or the requested) bone of a label volume.
 
     Each bone is cropped to its bounding box before any filtering, cleaned
     (`clean_mask`), and surfaced (`extract_surface`); bones run in a thread pool.
+    `progress` is called with each bone's name when it is done, `status`
+    (see `load_bones`) before each bone's surfacing and decimation.
 
     Raises
     ------
@@ -183,9 +186,12 @@ def surfaces_from_labels(volume: LabelVolume, *, bones: list[str] | None = None,
     for b, v in present.items():
         _check_plausible_size(b, boxes[v], volume.affine_m, src)
 
+    say = status or (lambda message: None)
+
     def extract(bone: str) -> tuple[trimesh.Trimesh, dict]:
         label = present[bone]
         sl = boxes[label]
+        say(f"{bone}: surfacing label {label}")
         crop = volume.labels[sl] == label
         mask, rep = clean_mask(crop, keep_fraction, spacing=volume.spacing_m)
         start = np.array([s.start for s in sl], float)
@@ -204,7 +210,12 @@ def surfaces_from_labels(volume: LabelVolume, *, bones: list[str] | None = None,
     meshes = _map(extract, names, workers)
     if target_faces:
         # pymeshlab corrupts the heap when used from worker threads: main thread only
-        meshes = [(decimate(m, target_faces), r) for m, r in meshes]
+        decimated = []
+        for b, (m, r) in zip(names, meshes):
+            if target_faces < len(m.faces):
+                say(decimation_message(b, len(m.faces), target_faces))
+            decimated.append((decimate(m, target_faces), r))
+        meshes = decimated
         if progress is not None:
             for b in names:
                 progress(b)
@@ -226,7 +237,8 @@ def _map(fn, items: list, workers: int) -> list:
 def load_bones(path: str | os.PathLike, label_map: str | os.PathLike | dict | None = None, *,
                bones: list[str] | None = None, target_faces: int | None = None, fix_orientation: bool = False,
                workers: int = 2, point_spacing: float = 2e-3, seed: int = 0, eager_points: bool = True,
-               progress: Callable[[str], None] | None = None) -> dict[str, BoneSurface]:
+               progress: Callable[[str], None] | None = None,
+               status: Callable[[str], None] | None = None) -> dict[str, BoneSurface]:
     """Bone surfaces from a label volume (.nii, .nii.gz, .nrrd) or a folder of meshes.
 
     Parameters
@@ -243,6 +255,13 @@ def load_bones(path: str | os.PathLike, label_map: str | os.PathLike | dict | No
         For meshes: invert inside-out meshes instead of refusing them.
     eager_points : bool
         Build the point clouds now (in the worker threads) rather than on first use.
+    progress : callable(str), optional
+        Called with each bone's name when its surface is done (one step per bone).
+    status : callable(str), optional
+        Called before each long step of a bone (reading, repair, surfacing,
+        decimation) with what is done and the mesh size, for decimation with
+        its expected time (``"femur_r: decimating 7,500,000 faces to 500,000
+        (about 5 min)"``): a display's current description, not a step.
 
     Returns
     -------
@@ -255,10 +274,15 @@ def load_bones(path: str | os.PathLike, label_map: str | os.PathLike | dict | No
     if not p.exists():
         raise InputError(p, "file or folder not found")
     if p.is_dir():
-        meshes, folder_rep = read_mesh_folder_detailed(p, bones=bones, fix_orientation=fix_orientation)
+        meshes, folder_rep = read_mesh_folder_detailed(p, bones=bones, fix_orientation=fix_orientation,
+                                                       status=status)
         out = BoneSurfaces(rejected=folder_rep["rejected"], notes=folder_rep["notes"])
         for name, mi in meshes.items():
-            mesh = decimate(mi.mesh, target_faces) if target_faces else mi.mesh
+            mesh = mi.mesh
+            if target_faces and target_faces < len(mesh.faces):
+                if status is not None:
+                    status(decimation_message(name, len(mesh.faces), target_faces))
+                mesh = decimate(mesh, target_faces)
             rep = dict(mi.report, frame="input", ignored_files=folder_rep["ignored_files"])
             out[name] = BoneSurface(name=name, mesh=mesh, source=mi.source, report=rep,
                                     point_spacing=point_spacing, seed=seed)
@@ -272,4 +296,4 @@ def load_bones(path: str | os.PathLike, label_map: str | os.PathLike | dict | No
     vol = read_label_volume(p, label_map)
     return surfaces_from_labels(vol, bones=bones, target_faces=target_faces, workers=workers,
                                 point_spacing=point_spacing, seed=seed, eager_points=eager_points,
-                                progress=progress)
+                                progress=progress, status=status)
