@@ -115,7 +115,8 @@ def check_trial(tr: MarkerTrial, bound: float) -> None:
 
 
 def _read_c3d_case(path: Path, cases: Cases):
-    from kinematics.io.c3d import MAX_COORDINATE_M, _header_frames, read_c3d
+    from kinematics.io.c3d import _header_frames, read_c3d
+    from kinematics.io.markers import MAX_COORDINATE_M
 
     try:
         tr = read_c3d(path)
@@ -195,7 +196,7 @@ def _expected(tok: str) -> float | None:
 
 
 def _check_trc(tr, ref, replaced) -> None:
-    from kinematics.io.storage import MAX_COORDINATE_M
+    from kinematics.io.markers import MAX_COORDINATE_M
 
     check_trial(tr, MAX_COORDINATE_M)
     assert np.all(np.diff(tr.time) > 0)
@@ -311,7 +312,8 @@ def test_fuzz_ply(seeds, tmp_path, seed_name):
 def test_fuzz_real_seeds(shared_data, tmp_path):
     """The same corruptions of real files: a Vicon C3D (10 frames of mocap_pig's static) and OpenSim's walk TRC."""
     from kinematics.io.c3d import read_c3d, write_c3d
-    from kinematics.io.storage import MAX_COORDINATE_M, read_trc
+    from kinematics.io.markers import MAX_COORDINATE_M
+    from kinematics.io.storage import read_trc
 
     st_trial = read_c3d(shared_data / "mocap_pig" / "Static_trial.c3d")
     small = MarkerTrial(st_trial.names[:20], st_trial.positions[:10, :20], st_trial.rate, st_trial.time[:10], "s")

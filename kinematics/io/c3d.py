@@ -31,17 +31,11 @@ import numpy as np
 
 from lowerlimb.atomic import atomic_path
 from lowerlimb.errors import InputError
-from kinematics.io.markers import MarkerTrial, true_runs
+from kinematics.io.markers import LENGTH_UNITS as _LENGTH
+from kinematics.io.markers import MAX_COORDINATE_M, MAX_RATE_HZ, MarkerTrial, true_runs
 
-__all__ = ["read_c3d", "read_c3d_outputs", "write_c3d", "fill_gaps", "C3DOutputs", "Gap", "GapReport",
-           "MAX_COORDINATE_M"]
+__all__ = ["read_c3d", "read_c3d_outputs", "write_c3d", "fill_gaps", "C3DOutputs", "Gap", "GapReport"]
 
-#: largest plausible |coordinate| of a marker, metres (a gait lab is ~20 m across)
-MAX_COORDINATE_M = 100.0
-#: largest plausible POINT:RATE, Hz
-MAX_RATE_HZ = 100_000.0
-
-_LENGTH = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "meters": 1.0, "metres": 1.0, "millimeters": 1e-3, "millimetres": 1e-3}
 # Output groups written by Nexus and the factor converting their stated unit to SI.
 _OUTPUT_GROUPS = {
     "ANGLES": ("ANGLE_UNITS", {"deg": np.pi / 180.0, "rad": 1.0}, "rad"),

@@ -69,6 +69,7 @@ from pathlib import Path
 import numpy as np
 
 from kinematics.io.c3d import open_c3d
+from kinematics.io.markers import LENGTH_UNITS as _LENGTH
 from kinematics.io.markers import true_runs
 from lowerlimb.errors import InputError
 
@@ -76,7 +77,6 @@ __all__ = ["ForcePlate", "ForcePlates", "box_average", "read_force_plates"]
 
 DEFAULT_THRESHOLD_N = 20.0
 _COP_TOLERANCE_M = 0.01
-_LENGTH = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "meters": 1.0, "metres": 1.0, "millimeters": 1e-3, "millimetres": 1e-3}
 _FORCE = {"n": 1.0, "kn": 1e3, "newton": 1.0, "newtons": 1.0}
 _MOMENT = {"nmm": 1e-3, "n.mm": 1e-3, "n mm": 1e-3, "nm": 1.0, "n.m": 1.0, "n m": 1.0, "knm": 1e3}
 

@@ -10,7 +10,16 @@ import numpy as np
 
 from lowerlimb.errors import InputError
 
-__all__ = ["MarkerTrial", "true_runs"]
+__all__ = ["MarkerTrial", "true_runs", "MAX_COORDINATE_M", "MAX_RATE_HZ", "LENGTH_UNITS"]
+
+#: largest plausible |coordinate| of a marker, metres (a gait lab is ~20 m across; mm read as m lands beyond);
+#: the C3D and TRC readers refuse files beyond it
+MAX_COORDINATE_M = 100.0
+#: largest plausible marker sampling rate, Hz
+MAX_RATE_HZ = 100_000.0
+#: length units of marker files (C3D POINT:UNITS, TRC Units, force-plate geometry) -> metres
+LENGTH_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "meters": 1.0, "metres": 1.0, "millimeters": 1e-3,
+                "millimetres": 1e-3}
 
 
 def true_runs(mask) -> list[tuple[int, int]]:

@@ -40,7 +40,7 @@ import numpy as np
 
 from lowerlimb.atomic import write_text
 from lowerlimb.errors import InputError
-from kinematics.io.markers import MarkerTrial
+from kinematics.io.markers import MAX_COORDINATE_M, MAX_RATE_HZ, MarkerTrial
 
 __all__ = [
     "TRC_UNITS",
@@ -54,11 +54,8 @@ __all__ = [
     "guess_rotational",
 ]
 
-#: largest plausible |coordinate| of a marker, metres (a gait lab is ~20 m across; mm read as m lands beyond)
-MAX_COORDINATE_M = 100.0
 #: largest plausible |value| in a MOT/STO table (degrees, m, N, N m, W of human movement are far below)
 MAX_TABLE_VALUE = 1e7
-_MAX_RATE_HZ = 100_000.0
 
 #: Length units a TRC header may declare, as metres per unit.
 TRC_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
@@ -144,8 +141,8 @@ def read_trc(path: str | os.PathLike) -> MarkerTrial:
         n_markers_hdr = int(float(header["NumMarkers"]))
     except ValueError:
         raise InputError(path, "TRC header DataRate/NumFrames/NumMarkers are not numbers") from None
-    if not (0 < rate <= _MAX_RATE_HZ):
-        raise InputError(path, f"TRC DataRate {header['DataRate']!r} must be a positive number up to {_MAX_RATE_HZ:g} Hz")
+    if not (0 < rate <= MAX_RATE_HZ):
+        raise InputError(path, f"TRC DataRate {header['DataRate']!r} must be a positive number up to {MAX_RATE_HZ:g} Hz")
 
     label_fields = lines[3].split("\t")
     if len(label_fields) < 2 or label_fields[0].strip() != "Frame#" or label_fields[1].strip().lower() != "time":
