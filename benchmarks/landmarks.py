@@ -103,7 +103,7 @@ def reference_comparison() -> dict:
     cross-check; the share of centres and axes within 3 stated sd; the
     model-error constants chosen on each set and their coverage on the other.
     """
-    from personalize.reference_models import (calibrate_model_error, compare_joints, coverage, error_rows,
+    from personalize.evaluation.reference_models import (calibrate_model_error, compare_joints, coverage, error_rows,
                                               read_reference_joints)
 
     ref = DATA / "reference_models"
@@ -165,7 +165,7 @@ def hip_cap_sensitivity() -> dict:
     """ICL-MRI femoral head centre vs the hand-built hip centre for the articular cap angle x0.8 ... x1.2."""
     from personalize.landmarks import detect_landmarks
     from personalize.landmarks import femur as F
-    from personalize.reference_models import read_reference_joints
+    from personalize.evaluation.reference_models import read_reference_joints
     from personalize.surfaces import load_bones
 
     manual = read_reference_joints(DATA / "reference_models" / "manual_ICL_MRI.osim", use_opensim=False)
@@ -198,8 +198,10 @@ def ankle_diagnostics() -> dict:
     from personalize.frames import joints_from_landmarks
     from personalize.landmarks import detect_landmarks
     from personalize.landmarks import talus as T
-    from personalize.landmarks.common import as_surface, orient, perpendicular, unit
-    from personalize.reference_models import compare_joints, read_reference_joints
+    from lowerlimb.geometry import orient, unit
+    from personalize.landmarks.shape_fits import perpendicular
+    from personalize.landmarks.surface import as_surface
+    from personalize.evaluation.reference_models import compare_joints, read_reference_joints
     from personalize.surfaces import load_bones
 
     ref = DATA / "reference_models"
@@ -237,7 +239,7 @@ def ankle_diagnostics() -> dict:
     # how closely the hand-built cylinder can be recovered from the surface it describes:
     # refit on the talus vertices within `tol` of it (normals radial), the largest patch
     from personalize.fitting import fit_cylinder
-    from personalize.landmarks.common import largest_patch
+    from personalize.landmarks.surface import largest_patch
 
     mo, mz = manual["ankle_r"].origin, orient(unit(manual["ankle_r"].rotation[:, 2]), u0)
     v = S.vertices - mo
@@ -331,9 +333,9 @@ def staple_convention() -> dict:
     """
     from personalize.frames import joints_from_landmarks
     from personalize.landmarks import detect_landmarks
-    from personalize.landmarks.common import as_surface
+    from personalize.landmarks.surface import as_surface
     from personalize.landmarks.trochlea import staple_trochlea_cylinder
-    from personalize.reference_models import read_reference_joints
+    from personalize.evaluation.reference_models import read_reference_joints
     from personalize.surfaces import load_bones
 
     def vs(tc, j):
@@ -541,7 +543,7 @@ def robustness() -> dict:
     from personalize.frames import joints_from_landmarks
     from personalize.landmarks import detect_landmarks
     from personalize.landmarks.evaluate import TOLERANCES, phantom_case
-    from personalize.reference_models import compare_joints
+    from personalize.evaluation.reference_models import compare_joints
     from personalize.surfaces import decimate, load_bones
 
     out: dict = {}

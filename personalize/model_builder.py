@@ -54,6 +54,9 @@ from scipy.spatial.transform import Rotation
 
 from kinematics.mechanisms.correlative import CorrelativeLaw
 from lowerlimb.errors import InputError
+from lowerlimb.geometry import frame_yz, frame_zy, unit
+from lowerlimb.topology import (JOINT_COORDINATES, KNEE_ROTATIONS, KNEE_TRANSLATIONS, PELVIS_TRANSLATIONS, coordinate_def,
+                                leg_coordinates, sided)
 from kinematics.multibody.functions import Linear
 from kinematics.multibody.joints import CustomJoint, Transform, TransformAxis, free, revolute
 from kinematics.multibody.model import Body, Coordinate, Marker, Model
@@ -87,28 +90,6 @@ FOOT_SPLIT = {"talus": 0.10, "calcn": 0.75, "toes": 0.15}
 #: (flexion, adduction, rotation): the centres of the published ranges the phantoms draw from
 #: (femoral roll-back 2-6 mm/rad, tibial sinking 1-3 mm/rad, ab/adduction and rotation coupling)
 DEFAULT_KNEE_SLOPES = 1e-3 * np.array([[4.0, 0.0, 0.0], [-2.0, 0.0, 0.0], [0.0, 5.5, -4.0]])
-
-
-def _unit(v) -> np.ndarray:
-    v = np.asarray(v, float)
-    n = np.linalg.norm(v)
-    if not np.isfinite(n) or n < 1e-12:
-        raise InputError("model", "a zero or non-finite direction in the subject parameters")
-    return v / n
-
-
-def _frame_zy(z, y_hint) -> np.ndarray:
-    """Rotation with z = unit(z) and y = y_hint made orthogonal to z (columns x, y, z)."""
-    z = _unit(z)
-    y = _unit(np.asarray(y_hint, float) - np.dot(y_hint, z) * z)
-    return np.column_stack([np.cross(y, z), y, z])
-
-
-def _frame_yz(y, z_hint) -> np.ndarray:
-    """Rotation with y = unit(y) exactly and z = z_hint made orthogonal to y."""
-    y = _unit(y)
-    z = _unit(np.asarray(z_hint, float) - np.dot(z_hint, y) * y)
-    return np.column_stack([np.cross(y, z), y, z])
 
 
 @dataclass(frozen=True)
@@ -183,8 +164,8 @@ def default_knee_law(side: str) -> CorrelativeLaw:
     """The generic knee law (`DEFAULT_KNEE_SLOPES`), zero translation at zero angles (the standing pose)."""
     return CorrelativeLaw(
         joint=f"knee_{side}",
-        independent=(f"knee_flexion_{side}", f"knee_adduction_{side}", f"knee_rotation_{side}"),
-        dependent=(f"knee_tx_{side}", f"knee_ty_{side}", f"knee_tz_{side}"),
+        independent=tuple(sided(c, side) for c in KNEE_ROTATIONS),
+        dependent=tuple(sided(c, side) for c in KNEE_TRANSLATIONS),
         coefficients=np.column_stack([DEFAULT_KNEE_SLOPES, np.zeros(3)]),
         independent_units=("rad",) * 3, dependent_units=("m",) * 3,
     )
@@ -220,9 +201,9 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
     R_p = np.asarray(p.pelvis_rotation, float)
     frames = {"pelvis": (o_p, R_p)}
     laws = {}
-    coords = [Coordinate("pelvis_rotation"), Coordinate("pelvis_list"), Coordinate("pelvis_tilt"),
-              Coordinate("pelvis_tx", "translational"), Coordinate("pelvis_ty", "translational"),
-              Coordinate("pelvis_tz", "translational")]
+    # the free joint's rotations in its ZXY sequence (heading, list, tilt about the Z-up lab axes)
+    coords = [Coordinate(n, coordinate_def(n).kind, range=coordinate_def(n).range)
+              for n in ("pelvis_rotation", "pelvis_list", "pelvis_tilt") + PELVIS_TRANSLATIONS]
     joints = [free("ground_pelvis", "ground", "pelvis", [c.name for c in coords], sequence="ZXY")]
     length_pelvis = 0.0833 * p.height                       # de Leva lower-trunk length / stature
     bodies = [Body("pelvis", DE_LEVA["pelvis"][0] * p.mass, np.zeros(3),
@@ -245,26 +226,23 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         if min(np.linalg.norm(H - K), np.linalg.norm(K - A)) < 0.05:
             raise InputError("model", f"side {s}: hip, knee and ankle centres are closer than 5 cm")
         right = -R_p[:, 1]                                  # subject's right in the static lab
-        k_left = -_unit(sp.knee_axis) if np.dot(sp.knee_axis, right) > 0 else _unit(sp.knee_axis)
-        a_right = _unit(sp.ankle_axis) if np.dot(sp.ankle_axis, right) > 0 else -_unit(sp.ankle_axis)
+        k_left = -unit(sp.knee_axis, where="model") if np.dot(sp.knee_axis, right) > 0 else unit(sp.knee_axis, where="model")
+        a_right = unit(sp.ankle_axis, where="model") if np.dot(sp.ankle_axis, right) > 0 else -unit(sp.ankle_axis, where="model")
         fwd = R_p[:, 0]
-        st = _unit(sp.subtalar_axis) if np.dot(sp.subtalar_axis, fwd) > 0 else -_unit(sp.subtalar_axis)
-        m_right = _unit(sp.mtp_axis) if np.dot(sp.mtp_axis, right) > 0 else -_unit(sp.mtp_axis)
-        R_f = _frame_zy(H - K, k_left)
-        R_t = _frame_zy(K - A, k_left)
+        st = unit(sp.subtalar_axis, where="model") if np.dot(sp.subtalar_axis, fwd) > 0 else -unit(sp.subtalar_axis, where="model")
+        m_right = unit(sp.mtp_axis, where="model") if np.dot(sp.mtp_axis, right) > 0 else -unit(sp.mtp_axis, where="model")
+        R_f = frame_zy(H - K, k_left, where="model")
+        R_t = frame_zy(K - A, k_left, where="model")
         sub = np.asarray(sp.subtalar, float)
         sub = sub + np.dot(A - sub, st) * st                # the subtalar axis point nearest the ankle centre
         frames.update({f"femur_{s}": (K, R_f), f"tibia_{s}": (A, R_t), f"talus_{s}": (A, R_t),
                        f"calcn_{s}": (sub, R_t), f"toes_{s}": (np.asarray(sp.mtp, float), R_t)})
-        hc = [f"hip_flexion_{s}", f"hip_adduction_{s}", f"hip_rotation_{s}"]
-        kc = [f"knee_flexion_{s}", f"knee_adduction_{s}", f"knee_rotation_{s}"]
-        kt = [f"knee_tx_{s}", f"knee_ty_{s}", f"knee_tz_{s}"]
-        coords += [Coordinate(n, range=(-np.pi / 2, np.pi / 2)) for n in hc]
-        coords += [Coordinate(kc[0], range=(-0.6, 2.6)), Coordinate(kc[1], range=(-0.6, 0.6)),
-                   Coordinate(kc[2], range=(-0.9, 0.9))]
-        coords += [Coordinate(n, "translational", range=(-0.03, 0.03)) for n in kt]
-        coords += [Coordinate(f"ankle_angle_{s}", range=(-1.2, 1.0)), Coordinate(f"subtalar_angle_{s}", range=(-0.8, 0.8)),
-                   Coordinate(f"mtp_angle_{s}", range=(-0.6, 1.2), locked=not any(n[0].lower() == s for n in toes_markers))]
+        hc = [sided(c, s) for c in JOINT_COORDINATES["hip"]]
+        kc = [sided(c, s) for c in KNEE_ROTATIONS]
+        kt = [sided(c, s) for c in KNEE_TRANSLATIONS]
+        toes_tracked = any(n[0].lower() == s for n in toes_markers)
+        coords += [Coordinate(n, d.kind, range=d.range, locked=(d.joint == "mtp" and not toes_tracked))
+                   for n, d in leg_coordinates(s)]
         L_th, L_sh = float(np.linalg.norm(H - K)), float(np.linalg.norm(K - A))
         L_ft = float(np.linalg.norm(np.asarray(sp.mtp, float) - A)) * 1.35   # heel-to-toe ~ 1.35 x ankle-to-mtp
         m_th, m_sh, m_ft = (DE_LEVA[k][0] * p.mass for k in ("thigh", "shank", "foot"))
@@ -284,7 +262,7 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
             rotations=(ax(-_Y, hc[0]), ax(sg * _X, hc[1]), ax(sg * _Z, hc[2])), kind_name="custom"))
         # knee: flexion exactly about the fused axis; child frame = the tibia frame, so that the standing angles
         # are the anatomical ones (flexion and varus between the femoral and tibial mechanical axes)
-        R_k = _frame_yz(k_left, H - K)
+        R_k = frame_yz(k_left, H - K, where="model")
         knee_frames[s] = R_k
         laws[s] = sp.knee_law or default_knee_law(s)
         # the law's standing translation (its constant term; e.g. a fused intercept) moves the tibia's joint point
@@ -337,8 +315,8 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         sg = 1.0 if s == "r" else -1.0
         R_f = frames[f"femur_{s}"][1]
         phi, psi, chi = Rotation.from_matrix(R_p.T @ R_f).as_euler("YXZ")
-        q0[[ix(f"hip_flexion_{s}"), ix(f"hip_adduction_{s}"), ix(f"hip_rotation_{s}")]] = (-phi, sg * psi, sg * chi)
-        q0[[ix(f"knee_flexion_{s}"), ix(f"knee_adduction_{s}"), ix(f"knee_rotation_{s}")]] = knee_q[s]
+        q0[[ix(sided(c, s)) for c in JOINT_COORDINATES["hip"]]] = (-phi, sg * psi, sg * chi)
+        q0[[ix(sided(c, s)) for c in KNEE_ROTATIONS]] = knee_q[s]
         law = laws[s]
         q0[[ix(n) for n in law.dependent]] = law.predict(knee_q[s][None])[0]
     # default pose = static pose (IK's cold start and OpenSim's default state)

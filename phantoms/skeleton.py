@@ -45,6 +45,8 @@ from kinematics.gait.pig import SegmentPose, joint_angles, pelvis_frame
 from kinematics.gait.soft_tissue import draw_thickness
 from kinematics.gait.subject import SubjectMeasurements
 from lowerlimb.geometry import DEFAULT_MARKER_DIAMETER, DEFAULT_MARKER_RADIUS, frame_zy, unit
+from lowerlimb.topology import (JOINT_COORDINATES, KNEE_ROTATIONS, KNEE_TRANSLATIONS, PELVIS_TRANSLATIONS, coordinate_def,
+                                leg_coordinates, sided)
 
 __all__ = ["LAB_FROM_BODY", "Site", "PhantomSkeleton", "phantom_skeleton", "pelvis_tissue_thickness", "pelvis_skin_sites", "SIDES",
            "PIG_MARKERS", "EXTRA_MARKERS", "DEVICE_MARKERS"]
@@ -199,8 +201,8 @@ def _knee_law(side: str, rng: np.random.Generator, standing: np.ndarray) -> Corr
     c0 = -slopes @ standing
     return CorrelativeLaw(
         joint=f"knee_{side}",
-        independent=(f"knee_flexion_{side}", f"knee_adduction_{side}", f"knee_rotation_{side}"),
-        dependent=(f"knee_tx_{side}", f"knee_ty_{side}", f"knee_tz_{side}"),
+        independent=tuple(sided(c, side) for c in KNEE_ROTATIONS),
+        dependent=tuple(sided(c, side) for c in KNEE_TRANSLATIONS),
         coefficients=np.column_stack([slopes, c0]),
         independent_units=("rad",) * 3, dependent_units=("m",) * 3,
     )
@@ -392,22 +394,19 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         o, R = body_frames[body]
         return R.T @ (np.asarray(p) - o)
 
-    coords = [Coordinate("pelvis_rotation"), Coordinate("pelvis_list"), Coordinate("pelvis_tilt"),
-              Coordinate("pelvis_tx", "translational"), Coordinate("pelvis_ty", "translational"),
-              Coordinate("pelvis_tz", "translational")]
+    # the free joint's rotations in its ZXY sequence (heading, list, tilt about the Z-up lab axes)
+    coords = [Coordinate(n, coordinate_def(n).kind, range=coordinate_def(n).range)
+              for n in ("pelvis_rotation", "pelvis_list", "pelvis_tilt") + PELVIS_TRANSLATIONS]
     jl = [free("ground_pelvis", "ground", "pelvis", [c.name for c in coords], sequence="ZXY")]
     bodies = [Body("pelvis", 11.0)]
     for s in SIDES:
         j = joints[s]
         sg = 1.0 if s == "r" else -1.0
-        hc = [f"hip_flexion_{s}", f"hip_adduction_{s}", f"hip_rotation_{s}"]
-        kc = [f"knee_flexion_{s}", f"knee_adduction_{s}", f"knee_rotation_{s}"]
-        kt = [f"knee_tx_{s}", f"knee_ty_{s}", f"knee_tz_{s}"]
-        coords += [Coordinate(n, range=(-np.pi / 2, np.pi / 2)) for n in hc]
-        coords += [Coordinate(kc[0], range=(-0.35, 2.6)), Coordinate(kc[1], range=(-0.6, 0.6)),
-                   Coordinate(kc[2], range=(-0.9, 0.9))]
-        coords += [Coordinate(n, "translational", range=(-0.03, 0.03)) for n in kt]
-        coords += [Coordinate(f"ankle_angle_{s}", range=(-1.0, 1.0)), Coordinate(f"subtalar_angle_{s}", range=(-0.6, 0.6))]
+        hc = [sided(c, s) for c in JOINT_COORDINATES["hip"]]
+        kc = [sided(c, s) for c in KNEE_ROTATIONS]
+        kt = [sided(c, s) for c in KNEE_TRANSLATIONS]
+        # the toes ride on the calcaneus (no mtp joint)
+        coords += [Coordinate(n, d.kind, range=d.range) for n, d in leg_coordinates(s, ("hip", "knee", "ankle", "subtalar"))]
         bodies += [Body(f"femur_{s}", 8.0), Body(f"tibia_{s}", 3.5), Body(f"talus_{s}", 0.1), Body(f"calcn_{s}", 1.2)]
         ax = lambda v, c: TransformAxis(np.asarray(v, float), Linear(), (c,))  # noqa: E731
         jl.append(CustomJoint(
@@ -456,8 +455,8 @@ def phantom_skeleton(ph, seed: int | None = None) -> PhantomSkeleton:
         S = s.upper()
         h = joint_angles(seg["pelvis"], seg[f"femur_{s}"], "hip", S)[0]
         k = joint_angles(seg[f"femur_{s}"], seg[f"tibia_{s}"], "knee", S)[0]
-        q0[[ix(f"hip_flexion_{s}"), ix(f"hip_adduction_{s}"), ix(f"hip_rotation_{s}")]] = h
-        q0[[ix(f"knee_flexion_{s}"), ix(f"knee_adduction_{s}"), ix(f"knee_rotation_{s}")]] = k
+        q0[[ix(sided(c, s)) for c in JOINT_COORDINATES["hip"]]] = h
+        q0[[ix(sided(c, s)) for c in KNEE_ROTATIONS]] = k
         laws[s] = _knee_law(s, rng, k)
     coupling = laws["r"].to_coupling(base.coordinate_names).stack(laws["l"].to_coupling(base.coordinate_names))
     model = base.with_couplings(coupling.over(base.coordinate_names))

@@ -14,8 +14,8 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from personalize.landmarks.common import as_surface
-from personalize.landmarks.femur import posterior_condyle_cylinder
+from personalize.landmarks.surface import as_surface
+from personalize.landmarks.femoral_condyles import posterior_condyle_cylinder
 
 
 def _tube(radius, half_width, z0, n_theta=173, n_z=13):

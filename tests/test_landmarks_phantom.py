@@ -204,7 +204,7 @@ def test_flat_tibial_plateau_under_the_femur_is_not_a_cut():
     before the fix).  With the femur and the talus of the same scan the end
     under the femur is proximal and is not a cut.
     """
-    from personalize.landmarks.common import as_surface
+    from personalize.landmarks.surface import as_surface
     from personalize.landmarks.tibia import detect_tibia
     from personalize.evaluation.phantom_set import draw_subjects
 
@@ -245,7 +245,7 @@ def test_truncated_tibia_under_the_femur_keeps_its_cut():
             break                                  # this half holds the plateau (image axis sign not assumed)
     assert "femur_r" in surf
     # the phantom's flat plateau also looks like a cut: alone, both ends are "cuts" and no plateau is found
-    from personalize.landmarks.common import as_surface
+    from personalize.landmarks.surface import as_surface
     from personalize.landmarks.tibia import detect_tibia
     alone, _ = detect_tibia(as_surface(surf["tibia_r"].mesh, "tibia_r"), "tibia_r")
     assert "plateau_centre" not in alone.landmarks

@@ -6,7 +6,7 @@ import pytest
 
 from personalize.frames import joints_from_landmarks
 from personalize.landmarks import detect_landmarks
-from personalize.reference_models import compare_joints, read_reference_joints
+from personalize.evaluation.reference_models import compare_joints, read_reference_joints
 
 
 @pytest.fixture(scope="module")
@@ -141,7 +141,7 @@ def test_icl_decimated_mesh_gives_the_same_joints(shared_data, monkeypatch):
     # detection, so the joints stay those of the full mesh
     from types import SimpleNamespace
 
-    from personalize.landmarks import common
+    from personalize.landmarks import surface
     from personalize.surfaces import decimate, load_bones
 
     names = ["femur_r", "tibia_r", "fibula_r", "talus_r", "calcn_r", "toes_r"]
@@ -160,7 +160,7 @@ def test_icl_decimated_mesh_gives_the_same_joints(shared_data, monkeypatch):
     assert d["ankle_r"]["distance_mm"] < 1.0 and d["ankle_r"]["angle_deg"] < 1.0, d
     assert d["subtalar_r"]["distance_mm"] < 2.0 and d["subtalar_r"]["angle_deg"] < 2.0, d
     # detected on the decimated vertices as they are, the knee moves by millimetres
-    monkeypatch.setattr(common, "SUBDIVIDED_EDGE", 1.0)
+    monkeypatch.setattr(surface, "SUBDIVIDED_EDGE", 1.0)
     _, d_raw = differences()
     assert d_raw["knee_r"]["distance_mm"] > 1.5, d_raw
 

@@ -6,7 +6,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from personalize.landmarks.common import as_surface
+from personalize.landmarks.surface import as_surface
 from personalize.landmarks.trochlea import _section_areas, staple_trochlea_cylinder
 
 
@@ -36,7 +36,7 @@ def test_reproduces_the_staple_model_on_icl(icl_talus, shared_data):
     # STAPLE's own selection (no hint): its ankle in automatic_ICL_MRI.osim is the
     # reference; differences left: curvature estimator (libigl vs patch fit) and the
     # cylinder fitter's start
-    from personalize.reference_models import read_reference_joints
+    from personalize.evaluation.reference_models import read_reference_joints
 
     auto = read_reference_joints(shared_data / "reference_models" / "automatic_ICL_MRI.osim",
                                  use_opensim=False)["ankle_r"]

@@ -14,7 +14,8 @@ from lowerlimb.bones import BONE_NAMES, canonical_bone_name
 from personalize.io import MESH_SUFFIXES, POINT_SUFFIXES
 
 from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_NOT_CLOSED, FLAG_SIDE_MISMATCH, Axis,
-                     BoneLandmarks, Landmark, LandmarkSet, Surface, as_surface, even_sampling)
+                     BoneLandmarks, Landmark, LandmarkSet)
+from .surface import Surface, as_surface, even_sampling
 from .femur import detect_femur
 from .foot import detect_calcn, detect_toes
 from .patella import detect_patella

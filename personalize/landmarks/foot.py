@@ -20,15 +20,13 @@ from __future__ import annotations
 import numpy as np
 
 from lowerlimb.errors import FitError
+from lowerlimb.geometry import unit
 
-from .common import (FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark, Surface, extreme_vertex, perpendicular,
-                     principal_axes, refine_sphere, sphere_centre_cov, unit)
+from .common import FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark
+from .shape_fits import isotropic_cov, perpendicular, principal_axes, refine_sphere, sphere_centre_cov
+from .surface import Surface, extreme_vertex
 
 __all__ = ["detect_calcn", "detect_toes"]
-
-
-def _iso(s):
-    return (s * s) * np.eye(3)
 
 
 def _largest_hull_face_normal(V: np.ndarray) -> np.ndarray:
@@ -115,7 +113,7 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     contacts = {}
     for lab, k, rad in (("heel", kh, 0.012), ("met1", k1, 0.008), ("met5", k5, 0.008)):
         near = np.linalg.norm(V - V[k], axis=1) < rad
-        pt, cov = V[k].copy(), _iso(0.001)
+        pt, cov = V[k].copy(), isotropic_cov(0.001)
         try:
             from personalize.fitting import fit_sphere
             f0 = fit_sphere(V[near], normals=Nrm[near])
@@ -142,7 +140,7 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     X = np.cross(up, Z)
     # heel marker: most posterior point of the heel (along the foot's long axis)
     k = extreme_vertex(surface, -X, heel_zone, smooth=0.001)
-    res.landmarks[f"{P}HEE"] = Landmark(V[k].copy(), _iso(0.002))
+    res.landmarks[f"{P}HEE"] = Landmark(V[k].copy(), isotropic_cov(0.002))
     dd = unit(X + up)
     for lab, mk in (("met1", f"{P}D1M"), ("met5", f"{P}D5M")):
         f = contacts[lab][1]

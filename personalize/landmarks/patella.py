@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .common import FLAG_LOW_CONFIDENCE, BoneLandmarks, Landmark, Surface, perpendicular, principal_axes, unit
+from lowerlimb.geometry import unit
+
+from .common import FLAG_LOW_CONFIDENCE, BoneLandmarks, Landmark
+from .shape_fits import perpendicular, principal_axes
+from .surface import Surface
 
 __all__ = ["detect_patella"]
 

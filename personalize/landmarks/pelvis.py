@@ -18,17 +18,15 @@ from __future__ import annotations
 import numpy as np
 
 from lowerlimb.errors import FitError
+from lowerlimb.geometry import unit
 
-from .common import (FLAG_LOW_CONFIDENCE, BoneLandmarks, Landmark, Surface, extreme_vertex,
-                     hough_centres, perpendicular, refine_sphere, sphere_centre_cov, unit)
+from .common import FLAG_LOW_CONFIDENCE, BoneLandmarks, Landmark
+from .shape_fits import hough_centres, isotropic_cov, perpendicular, refine_sphere, sphere_centre_cov, sphere_fit_json
+from .surface import Surface, extreme_vertex
 
 __all__ = ["detect_pelvis"]
 
 ACETABULUM_RADII = np.arange(0.016, 0.0341, 0.0015)
-
-
-def _iso(s):
-    return (s * s) * np.eye(3)
 
 
 def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndarray | None = None) -> BoneLandmarks:
@@ -101,9 +99,7 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
     res.scalar_sd["acetabulum_radius_r"] = float(np.sqrt(max(np.asarray(fr.covariance)[3, 3], 0.0)))
     res.scalar_sd["acetabulum_radius_l"] = float(np.sqrt(max(np.asarray(fl.covariance)[3, 3], 0.0)))
     for lab, f, s in (("r", fr, sr), ("l", fl, sl)):
-        res.fits[f"acetabulum_{lab}"] = {"type": "sphere", "centre": np.asarray(f.centre).tolist(),
-                                         "radius": float(f.radius), "rms": float(f.rms),
-                                         "n_points": int(s.sum()), "converged": bool(f.converged)}
+        res.fits[f"acetabulum_{lab}"] = sphere_fit_json(f, int(s.sum()))
     noise = float(max(fr.rms, fl.rms))
 
     # ---- anterior pelvic plane: ASIS (both) and symphysis, iterated -----------------
@@ -171,13 +167,13 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
     s_mask = (np.abs((V - o) @ Z) < 0.02) & (((V - mid) @ Y) < 0.0)
     ks = extreme_vertex(surface, X, s_mask) if s_mask.any() else None
     sd_lm = np.hypot(noise, 0.002)
-    res.landmarks["RASI"] = Landmark(V[kr].copy(), _iso(sd_lm))
-    res.landmarks["LASI"] = Landmark(V[kl].copy(), _iso(sd_lm))
+    res.landmarks["RASI"] = Landmark(V[kr].copy(), isotropic_cov(sd_lm))
+    res.landmarks["LASI"] = Landmark(V[kl].copy(), isotropic_cov(sd_lm))
     if ks is not None:
-        res.landmarks["SYMP"] = Landmark(V[ks].copy(), _iso(sd_lm))
+        res.landmarks["SYMP"] = Landmark(V[ks].copy(), isotropic_cov(sd_lm))
     if kpr is not None:
-        res.landmarks["RPSI"] = Landmark(V[kpr].copy(), _iso(np.hypot(noise, 0.003)))
-        res.landmarks["LPSI"] = Landmark(V[kpl].copy(), _iso(np.hypot(noise, 0.003)))
+        res.landmarks["RPSI"] = Landmark(V[kpr].copy(), isotropic_cov(np.hypot(noise, 0.003)))
+        res.landmarks["LPSI"] = Landmark(V[kpl].copy(), isotropic_cov(np.hypot(noise, 0.003)))
     else:
         res.flag(FLAG_LOW_CONFIDENCE, "PSIS not found; pelvic X from the anterior pelvic plane")
     res.frames["isb"] = {"origin": o, "rotation": np.column_stack([X, Y, Z])}

@@ -27,10 +27,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from lowerlimb.errors import FitError
+from lowerlimb.geometry import orient, unit
 
-from .common import (FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark, Surface, axis_sd_deg,
-                     hough_centres, largest_patch, line_through, orient, perpendicular,
-                     principal_axes, refine_cylinder, refine_sphere, sphere_centre_cov, unit)
+from .common import FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark
+from .shape_fits import (axis_sd_deg, hough_centres, line_through, perpendicular, principal_axes, refine_cylinder,
+                         refine_sphere, sphere_centre_cov)
+from .surface import Surface, largest_patch
 
 __all__ = ["detect_talus"]
 

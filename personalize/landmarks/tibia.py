@@ -21,12 +21,13 @@ from __future__ import annotations
 import numpy as np
 
 from lowerlimb.errors import FitError
-
+from lowerlimb.geometry import orient, unit
 from personalize.fitting import fit_cylinder
 
-from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_TRUNCATED, Axis, BoneLandmarks, Landmark,
-                     Surface, axis_sd_deg, edge_curvature, extreme_vertex, largest_patch, long_bone_axes, orient,
-                     perpendicular, principal_axes, refine_cylinder, shaft_line, unit)
+from .common import FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_TRUNCATED, Axis, BoneLandmarks, Landmark
+from .long_bones import long_bone_axes, shaft_line
+from .shape_fits import axis_sd_deg, isotropic_cov, perpendicular, principal_axes, refine_cylinder
+from .surface import Surface, edge_curvature, extreme_vertex, largest_patch
 
 __all__ = ["detect_tibia", "detect_fibula", "split_components", "merge_surfaces", "tibia_surface"]
 
@@ -80,10 +81,6 @@ def tibia_surface(surface: Surface) -> Surface:
         else:
             keep.append(c)
     return keep[0] if len(keep) == 1 else merge_surfaces(keep)
-
-
-def _iso(s: float) -> np.ndarray:
-    return (s * s) * np.eye(3)
 
 
 def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None = None, *,
@@ -218,19 +215,19 @@ def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None
     if plat is not None:
         # centre of the plateau: centroid of the superior-facing articular region,
         # taken on the plateau surface (nearest vertex height)
-        res.landmarks["plateau_centre"] = Landmark(cp.copy(), _iso(0.002))
+        res.landmarks["plateau_centre"] = Landmark(cp.copy(), isotropic_cov(0.002))
         dirn = ml if ml @ right > 0 else -ml
         res.axes["knee_axis"] = Axis(point=cp.copy(), direction=dirn, sd_deg=3.0)
         # tuberosity: most anterior point 1-5 cm below the plateau
         slab = (hp < top - 0.015) & (hp > top - 0.06)
         if slab.any():
             k = extreme_vertex(tib, ant, slab, smooth=0.002)
-            res.landmarks[f"{P}TTB"] = Landmark(V[k].copy(), _iso(0.002))
+            res.landmarks[f"{P}TTB"] = Landmark(V[k].copy(), isotropic_cov(0.002))
     if has_dist:
         # medial malleolus: distal tip of the medial side of the pilon
         med_blk = (hp < bot + 0.05) & (((V - sp) @ med) > 0)
         k = extreme_vertex(tib, -sd, med_blk, smooth=0.001)
-        res.landmarks[f"{P}MMA"] = Landmark(V[k].copy(), _iso(0.002))
+        res.landmarks[f"{P}MMA"] = Landmark(V[k].copy(), isotropic_cov(0.002))
         _plafond(tib, res, hp, bot, sd, right, ant)
     # ISB-like frame: Y from the malleolar midpoint (or plafond) to the plateau centre
     if "plateau_centre" in res.landmarks and f"{P}MMA" in res.landmarks:
@@ -381,9 +378,9 @@ def detect_fibula(surface: Surface, name: str = "fibula_r", tibia: BoneLandmarks
         k = extreme_vertex(fib, lat, h > h.max() - 0.03, smooth=0.001)
     else:
         k = extreme_vertex(fib, prox, smooth=0.002)
-    res.landmarks[f"{P}HFB"] = Landmark(V[k].copy(), _iso(0.002))
+    res.landmarks[f"{P}HFB"] = Landmark(V[k].copy(), isotropic_cov(0.002))
     # lateral malleolus: its distal tip
     k = extreme_vertex(fib, -prox, smooth=0.001)
-    res.landmarks[f"{P}ANK"] = Landmark(V[k].copy(), _iso(0.002))
+    res.landmarks[f"{P}ANK"] = Landmark(V[k].copy(), isotropic_cov(0.002))
     res.axes["shaft_axis"] = Axis(point=c, direction=prox, sd_deg=2.0)
     return res

@@ -39,8 +39,9 @@ from scipy.spatial import ConvexHull
 from scipy.sparse.csgraph import connected_components
 
 from lowerlimb.errors import FitError
+from lowerlimb.geometry import orient, unit
 
-from .common import Surface, orient, unit
+from .surface import Surface
 
 __all__ = ["TrochleaCylinder", "staple_trochlea_cylinder"]
 
