@@ -4,11 +4,7 @@ Everything leaves this module in SI units: affines map voxel indices to metres,
 meshes are in metres.  The frame is the input's own (scanner) frame: NIfTI world
 coordinates (RAS+) or the NRRD ``space``; nothing is re-oriented.
 
-Unit detection for meshes compares each bone's largest bounding-box extent with
-an anatomically plausible range (`PLAUSIBLE_EXTENT_M`).  The ranges are wide
-(a factor >= 5 between bounds, children to large adults) yet much narrower
-than the factor 1000 between millimetres and metres, so the decision is never
-ambiguous; a size plausible in neither unit is refused.
+A mesh file's unit (m or mm) is decided from the bones' sizes (`personalize.io.units`).
 
 Modules
 -------

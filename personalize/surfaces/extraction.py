@@ -38,8 +38,8 @@ from lowerlimb.geometry import vertex_normals
 __all__ = ["extract_surface", "taubin_smooth", "decimate", "decimation_message", "signed_volume"]
 
 #: CPU seconds of `decimate` per face removed, for the expected time a display shows (the ICL femur
-#: subdivided: 7.5 M -> 500 k faces 334 s, i.e. 48 us; 470 k -> 100 k 14.9 s CPU, 40 us; 470 k -> 300 k
-#: 8.7 s, 51 us); a busy machine takes longer
+#: subdivided: 7.5 M -> 500 k faces 334 s, i.e. 48 us; 1.88 M -> 500 k 66 s CPU, 48 us; 470 k -> 100 k
+#: 14.9 s, 40 us; 470 k -> 300 k 8.7 s, 51 us); a busy machine takes longer
 DECIMATION_S_PER_REMOVED_FACE = 45e-6
 
 
