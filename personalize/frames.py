@@ -54,19 +54,8 @@ import numpy as np
 from lowerlimb.estimates import Gaussian
 from lowerlimb.geometry import frame_yz, frame_zy, orient, unit
 
-__all__ = ["Joint", "JointFrame", "closest_on_line", "joints_from_landmarks", "JOINT_NAMES",
-           "JOINT_BONES", "MODEL_ERROR", "joints_document", "JOINTS_CONVENTION"]
-
-JOINT_NAMES = ("hip", "knee", "ankle", "subtalar", "mtp")
-
-#: bones each joint needs (parent, child), per side
-JOINT_BONES = {
-    "hip": ("pelvis", "femur"),
-    "knee": ("femur", "tibia"),
-    "ankle": ("tibia", "talus"),
-    "subtalar": ("talus", "calcn"),
-    "mtp": ("calcn", "toes"),
-}
+__all__ = ["Joint", "JointFrame", "closest_on_line", "joints_from_landmarks", "MODEL_ERROR", "joints_document",
+           "JOINTS_CONVENTION"]
 
 
 def closest_on_line(point, direction, q) -> np.ndarray:
@@ -221,7 +210,7 @@ def _flags(*bones) -> tuple:
 #: metatarsal head) and the axis sd in degrees.  It is the distance between a joint detected here
 #: and the one an expert built by hand on the same bones, which the fit covariance does not see
 #: (conventions of which surface defines the joint, non-circular articular arcs).  Chosen on
-#: one real set, checked on the other (`personalize.reference_models.calibrate_model_error`,
+#: one real set, checked on the other (`personalize.evaluation.reference_models.calibrate_model_error`,
 #: ``benchmarks/landmarks.py --calibration``): one centre fraction and one axis sd pooled over
 #: the hip, knee, ankle and subtalar joints, not a constant per joint tuned to one subject.
 MODEL_ERROR = {k: {"centre": 0.020, "axis_deg": 1.2} for k in ("hip", "knee", "ankle", "subtalar")}

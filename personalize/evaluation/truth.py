@@ -17,7 +17,7 @@ from lowerlimb.errors import InputError
 from lowerlimb.geometry import kabsch
 
 __all__ = ["read_truth", "truth_in_static_lab", "errors_against_truth", "angle_errors_against_truth", "TRUTH_ANGLES",
-           "TruthComparison", "compare_with_truth"]
+           "chain_angle_errors", "TruthComparison", "compare_with_truth"]
 
 
 def read_truth(path: Path) -> dict | None:
@@ -154,6 +154,33 @@ def angle_errors_against_truth(inputs, ik_results: dict, rotational) -> dict:
     return ({c: float(np.sqrt(np.mean(d**2))) for c, d in sq.items()}, {c: float(np.mean(d)) for c, d in sq.items()})
 
 
+
+
+def chain_angle_errors(inputs, chains: dict) -> dict:
+    """RMSE (deg) of each chain's and the blend's Plug-in-Gait angles against the truth of the gait trials.
+
+    `chains` : trial -> {chain name or "blend": reconstruction} (`personalize.pipeline.trials.chain_blend`);
+    the truth is ``truth/<trial>_angles.mot``.  Per chain: the RMSE over the frames of each angle, averaged over
+    the gait trials (``angle_rmse_deg``) and over the angles (``angle_rmse_deg_mean_over_angles``); {} without truth.
+    """
+    from kinematics.gait.reconstruction import ANGLE_COLUMNS
+    from kinematics.io.storage import read_mot
+
+    rmse: dict = {}
+    for name, recs in chains.items():
+        tpath = inputs.folder / "truth" / f"{name}_angles.mot"
+        if not (name.startswith("gait") and tpath.is_file()):
+            continue
+        tab = read_mot(tpath)
+        tv = tab.values if tab.in_degrees else np.degrees(tab.values)
+        for m, r in recs.items():
+            d = np.degrees(r.angle_table()) - np.array([np.interp(r.time, tab.time, tv[:, tab.columns.index(c)])
+                                                        for c in ANGLE_COLUMNS]).T
+            rmse.setdefault(m, []).append(np.sqrt(np.nanmean(d**2, axis=0)))
+    if not rmse:
+        return {}
+    return {"angle_rmse_deg_mean_over_angles": {m: float(np.mean(v)) for m, v in rmse.items()},
+            "angle_rmse_deg": {m: dict(zip(ANGLE_COLUMNS, np.mean(v, axis=0).tolist())) for m, v in rmse.items()}}
 
 
 def _angle_deg(u, v) -> float:

@@ -66,7 +66,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
 def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dict:
     """`run_subject` without the refusal report."""
     from ..bone_set import write_bone_files
-    from ..evaluation.truth import compare_with_truth, truth_in_static_lab
+    from ..evaluation.truth import chain_angle_errors, compare_with_truth, truth_in_static_lab
     from ..model_builder import save_model_json, save_model_osim, write_meshes
     from ..outputs import replaced_dir
     from ..parameter_fusion import fuse_segment_lengths
@@ -103,8 +103,9 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
         save_model_json(pm, inside(stage, "model.json"), mesh_files)
         save_model_osim(pm, inside(stage, "model.osim"), mesh_files)
         ik, summary.ik = solve_trials(pm, inputs, stage, say)
-        summary.chain_blend = chain_blend(inputs, stage, summary.notes, truth is not None)
+        summary.chain_blend, chains = chain_blend(inputs, stage, summary.notes)
         if truth is not None:
+            summary.chain_blend.update(chain_angle_errors(inputs, chains))
             rot = [c.name for c in pm.model.coordinates if c.kind == "rotational"]
             summary.truth = compare_with_truth(inputs, truth, est, ik, rot)
         if report:

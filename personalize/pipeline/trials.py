@@ -54,21 +54,20 @@ def solve_trials(pm, inputs: SubjectInputs, stage: Path, say) -> tuple[dict, dic
     return results, fits
 
 
-def chain_blend(inputs: SubjectInputs, stage: Path, notes: list, with_truth: bool) -> dict:
+def chain_blend(inputs: SubjectInputs, stage: Path, notes: list) -> tuple[dict, dict]:
     """Per-frame Gaussian blend of the hip-first and foot-first chains of every dynamic trial (`kinematics.gait.chain_blend`).
 
     Writes ``kinematics/<trial>_chains.mot`` (Plug-in-Gait angles of the blended segments, deg) and
     ``kinematics/<trial>_chain_weights.sto`` (the foot-to-hip chain's weight per segment); returns the median
-    weights and, for phantoms, the angle RMSE of each chain and of the blend against the true Plug-in-Gait angles
-    of the gait trials (``truth/<trial>_angles.mot``).
+    weights (summary.json ``chain_blend``) and trial -> {chain name or "blend": reconstruction}.
     """
     from kinematics.gait.reconstruction import ANGLE_COLUMNS, reconstruct
-    from kinematics.io.storage import read_mot, write_mot, write_sto
+    from kinematics.io.storage import write_mot, write_sto
 
     func = inputs.trials.get(inputs.functional) if inputs.functional else None
     out: dict = {"median_foot_to_hip_weight": {}, "files": "kinematics/<trial>_chains.mot (deg), "
                  "kinematics/<trial>_chain_weights.sto (weight of the foot-to-hip chain; Plug-in-Gait has 1 - w)"}
-    rmse: dict = {}
+    chains: dict = {}
     for name, trial in sorted(inputs.trials.items()):
         if name == inputs.functional or name.startswith("functional"):
             continue
@@ -78,7 +77,7 @@ def chain_blend(inputs: SubjectInputs, stage: Path, notes: list, with_truth: boo
         except (InputError, FitError) as exc:
             notes.append(f"chain blend of {name}: {exc}")
             continue
-        recs = {**rec.chains, "blend": rec}
+        chains[name] = {**rec.chains, "blend": rec}
         write_mot(inside(stage, f"kinematics/{name}_chains.mot"), ANGLE_COLUMNS, rec.time, rec.angle_table(),
                   rotational=ANGLE_COLUMNS, name=f"blended chains {name}")
         segs = sorted(rec.weights)
@@ -87,15 +86,4 @@ def chain_blend(inputs: SubjectInputs, stage: Path, notes: list, with_truth: boo
                   header_extra=["weight of the foot-to-hip chain per segment and frame (0-1)"], name="ChainWeights")
         out["median_foot_to_hip_weight"][name] = {k: float(np.nanmedian(v)) for k, v in rec.weights.items()
                                                   if np.isfinite(v).any()}
-        tpath = inputs.folder / "truth" / f"{name}_angles.mot"
-        if with_truth and name.startswith("gait") and tpath.is_file():
-            tab = read_mot(tpath)
-            tv = tab.values if tab.in_degrees else np.degrees(tab.values)
-            for m, r in recs.items():
-                d = np.degrees(r.angle_table()) - np.array([np.interp(r.time, tab.time, tv[:, tab.columns.index(c)])
-                                                            for c in ANGLE_COLUMNS]).T
-                rmse.setdefault(m, []).append(np.sqrt(np.nanmean(d**2, axis=0)))
-    if rmse:
-        out["angle_rmse_deg_mean_over_angles"] = {m: float(np.mean(v)) for m, v in rmse.items()}
-        out["angle_rmse_deg"] = {m: dict(zip(ANGLE_COLUMNS, np.mean(v, axis=0).tolist())) for m, v in rmse.items()}
-    return out
+    return out, chains
