@@ -2,7 +2,8 @@
 
 Model (per frame f)
 -------------------
-Coordinates are parametrised so that every equality holds exactly::
+Coordinates are parametrised so that every equality holds exactly
+(`kinematics.algorithms.coordinate_map`)::
 
     q_R = q_p + N z                (linear couplings C q = d and locked coordinates;
                                     N N^T = P0, Raunhardt & Boulic's initial projector)
