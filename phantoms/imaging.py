@@ -390,18 +390,14 @@ def _add_noise(inside: np.ndarray, d: np.ndarray, h: np.ndarray, level: float, r
     shell_out = np.column_stack(np.nonzero(~inside & (d > hm) & (d < 5 * hm)))
     n_holes = int(round(level * len(shell_in) / 400))
     n_isl = int(round(level * len(shell_out) / 1500))
-    if n_holes and len(shell_in):
-        pick = shell_in[rng.choice(len(shell_in), size=min(n_holes, len(shell_in)), replace=False)]
-        for r in (1.0, 1.5):
-            sel = pick[rng.random(len(pick)) < 0.5]
-            if len(sel):
-                inside[_stamp(sel, inside.shape, r)] = False
-    if n_isl and len(shell_out):
-        pick = shell_out[rng.choice(len(shell_out), size=min(n_isl, len(shell_out)), replace=False)]
-        for r in (0.0, 1.0):
-            sel = pick[rng.random(len(pick)) < 0.5]
-            if len(sel):
-                inside[_stamp(sel, inside.shape, r)] = True
+    # holes punched inside the surface, then islands stamped outside it (this order: the seeded draws)
+    for shell, n, radii, value in ((shell_in, n_holes, (1.0, 1.5), False), (shell_out, n_isl, (0.0, 1.0), True)):
+        if n and len(shell):
+            pick = shell[rng.choice(len(shell), size=min(n, len(shell)), replace=False)]
+            for r in radii:
+                sel = pick[rng.random(len(pick)) < 0.5]
+                if len(sel):
+                    inside[_stamp(sel, inside.shape, r)] = value
 
 
 # --------------------------------------------------------------------------- writers

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from lowerlimb.errors import InputError
-from lowerlimb.bones import BONE_NAMES, mirror_name
+from lowerlimb.bones import BONE_NAMES, SIDES, mirror_name
+from lowerlimb.topology import JOINTS, sided
 from phantoms import PhantomParams, make_phantom
 
 SURFACE_LANDMARKS = {
@@ -42,7 +43,7 @@ def test_bone_names_and_schema(ph, truth):
     assert truth["units"] == "m" and truth["frame"] == "scanner"
     bones = truth["landmarks"]["bones"]
     assert set(bones) == set(BONE_NAMES)
-    assert set(truth["joints"]["joints"]) == {f"{j}_{s}" for j in ("hip", "knee", "ankle", "subtalar", "mtp") for s in "rl"}
+    assert set(truth["joints"]["joints"]) == {sided(j, s) for j in JOINTS for s in SIDES}
     for name in ("femoral_head_centre", "LTRO", "LKNE", "LMFC", "intercondylar_midpoint"):
         assert name in bones["femur_l"]["landmarks"]
     for name in ("femoral_head_radius", "neck_diameter_min", "medial_condyle_a", "lateral_condyle_b"):

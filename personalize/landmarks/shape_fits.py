@@ -89,6 +89,18 @@ def sphere_centre_cov(fit) -> np.ndarray:
     return cov + _VAR_FLOOR * np.eye(3)
 
 
+def _in_band(d, dist, N, r, band, convex, min_cos, mask) -> np.ndarray:
+    """Points within `band` of a primitive of radius `r` (``d`` their offsets from its centre or axis, ``dist``
+    the offsets' lengths) whose normals point away from it (``convex``) or towards it, cosine above `min_cos`."""
+    cosn = np.einsum("ij,ij->i", d, N) / np.maximum(dist, 1e-12)
+    if not convex:
+        cosn = -cosn
+    sel = (np.abs(dist - r) < band) & (cosn > min_cos)
+    if mask is not None:
+        sel &= mask
+    return sel
+
+
 def refine_sphere(points, normals, centre, radius, *, band: float, convex: bool = True,
                   min_cos: float = 0.7, mask=None, iterations: int = 3):
     """Fit a sphere to the points near a first guess, then re-select and refit.
@@ -110,13 +122,7 @@ def refine_sphere(points, normals, centre, radius, *, band: float, convex: bool 
     fit, sel = None, None
     for _ in range(iterations):
         d = P - c
-        dist = np.linalg.norm(d, axis=1)
-        cosn = np.einsum("ij,ij->i", d, N) / np.maximum(dist, 1e-12)
-        if not convex:
-            cosn = -cosn
-        sel_new = (np.abs(dist - r) < band) & (cosn > min_cos)
-        if mask is not None:
-            sel_new &= mask
+        sel_new = _in_band(d, np.linalg.norm(d, axis=1), N, r, band, convex, min_cos, mask)
         if sel_new.sum() < 20:
             if fit is None:
                 raise FitError(f"sphere: only {int(sel_new.sum())} surface points near the initial guess")
@@ -142,15 +148,9 @@ def refine_cylinder(points, normals, point, axis, radius, *, band: float, convex
         d = P - p0
         t = d @ u
         radial = d - t[:, None] * u
-        dist = np.linalg.norm(radial, axis=1)
-        cosn = np.einsum("ij,ij->i", radial, N) / np.maximum(dist, 1e-12)
-        if not convex:
-            cosn = -cosn
-        sel_new = (np.abs(dist - r) < band) & (cosn > min_cos)
+        sel_new = _in_band(radial, np.linalg.norm(radial, axis=1), N, r, band, convex, min_cos, mask)
         if half_length is not None:
             sel_new &= np.abs(t) < half_length
-        if mask is not None:
-            sel_new &= mask
         if sel_new.sum() < 30:
             if fit is None:
                 raise FitError(f"cylinder: only {int(sel_new.sum())} surface points near the initial guess")
