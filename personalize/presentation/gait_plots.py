@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lowerlimb.atomic import atomic_path
+
 __all__ = [
     "ANGLE_PANELS",
     "MOMENT_PANELS",
@@ -38,13 +40,11 @@ MOMENT_PANELS = {
 }
 
 
-def _plt():
-    import matplotlib
+def _figure(width: float, height: float):
+    # a Figure on its own Agg canvas: no pyplot state, no backend switched under a notebook user
+    from personalize.presentation.html_report import new_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return new_figure(width, height)
 
 
 def _panel(ax, stats: dict, name: str, k: int | None, unit: str, title: str):
@@ -82,9 +82,9 @@ def plot_gait_grid(path: str | os.PathLike, stats: dict, quantity: str, unit: st
     quantity : ``"angle"`` or ``"moment"`` (selects the panel titles)
     unit : y-axis unit, e.g. ``"deg"`` or ``"N mm/kg"``
     """
-    plt = _plt()
     titles = ANGLE_PANELS if quantity == "angle" else MOMENT_PANELS
-    fig, axes = plt.subplots(len(joints), 3, figsize=(10, 2.6 * len(joints)), sharex=True, squeeze=False)
+    fig = _figure(10, 2.6 * len(joints))
+    axes = fig.subplots(len(joints), 3, sharex=True, squeeze=False)
     for r, joint in enumerate(joints):
         for k in range(3):
             _panel(axes[r, k], stats, f"{joint}_{quantity}", k, unit, titles[joint][k])
@@ -94,16 +94,16 @@ def plot_gait_grid(path: str | os.PathLike, stats: dict, quantity: str, unit: st
     fig.suptitle(title or f"Joint {quantity}s (mean ± 1 sd; dashed: toe off)", fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
     return path
 
 
 def plot_power_row(path: str | os.PathLike, stats: dict, unit: str = "W/kg", *, joints=("hip", "knee", "ankle"),
                    title: str = "Joint powers (generation +)") -> Path:
     """Total joint power per % gait cycle, one panel per joint; `stats` keys (``f"{joint}_power"``, side)."""
-    plt = _plt()
-    fig, axes = plt.subplots(1, len(joints), figsize=(10, 2.8), squeeze=False)
+    fig = _figure(10, 2.8)
+    axes = fig.subplots(1, len(joints), squeeze=False)
     for k, joint in enumerate(joints):
         _panel(axes[0, k], stats, f"{joint}_power", None, unit, f"{joint.capitalize()} power")
         axes[0, k].set_xlabel("% gait cycle", fontsize=8)
@@ -111,8 +111,8 @@ def plot_power_row(path: str | os.PathLike, stats: dict, unit: str = "W/kg", *, 
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
     return path
 
 
@@ -124,9 +124,9 @@ def plot_foot_angle_fit(path: str | os.PathLike, phases: list[dict], *, title: s
     phases : list of dict with ``label`` (str), ``percent`` (m,) % of stance, ``measured`` and
         ``simulated`` (m,) degrees (toes up positive)
     """
-    plt = _plt()
     n = max(len(phases), 1)
-    fig, axes = plt.subplots(1, n, figsize=(3.6 * n, 3.0), squeeze=False, sharey=True)
+    fig = _figure(3.6 * n, 3.0)
+    axes = fig.subplots(1, n, squeeze=False, sharey=True)
     for ax, ph in zip(axes[0], phases):
         ax.plot(ph["percent"], ph["measured"], "k-", lw=1.5, label="measured")
         ax.plot(ph["percent"], ph["simulated"], "--", color="#1f77b4", lw=1.5, label="simulated")
@@ -139,6 +139,6 @@ def plot_foot_angle_fit(path: str | os.PathLike, phases: list[dict], *, title: s
     fig.suptitle(title or "Foot element: measured and simulated hind-foot orientation", fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
     return path

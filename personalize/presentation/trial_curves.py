@@ -1,4 +1,4 @@
-"""Curves of one trial against time: joint angles and joint moments, right red and left blue.
+"""Curves of one trial against time: joint angles and joint moments, left red and right green (Vicon).
 
 The figures of ``personalize markers`` (``angles.png``) and ``personalize
 dynamics`` (``moments.png``): one panel per joint and component, time (s) on
@@ -14,7 +14,9 @@ import numpy as np
 
 __all__ = ["MOMENT_JOINTS", "plot_angles", "plot_moments"]
 
-SIDES = (("r", "tab:red"), ("l", "tab:blue"))
+from personalize.presentation.gait_plots import SIDE_COLOURS
+
+SIDES = (("r", SIDE_COLOURS["R"]), ("l", SIDE_COLOURS["L"]))
 
 #: (coordinate stem, panel title) of the moment panels, gait2392 names and signs
 MOMENT_JOINTS = (("hip_flexion", "hip_flexion"), ("hip_adduction", "hip_adduction"), ("hip_rotation", "hip_rotation"),
@@ -27,12 +29,11 @@ _ANGLE_COMPONENTS = {"hip": ("flexion", "adduction", "internal rotation"),
 
 
 def _figure(size):
-    import matplotlib
+    from personalize.presentation.html_report import new_figure
 
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
-
-    return Figure(figsize=size, constrained_layout=True)
+    fig = new_figure(*size)
+    fig.set_layout_engine("constrained")
+    return fig
 
 
 def _save(fig, path: str | os.PathLike) -> None:
