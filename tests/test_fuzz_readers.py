@@ -74,6 +74,16 @@ class Cases:
         self.n = self.refused = 0
 
 
+def read_or_refuse(read, path: Path, cases: Cases):
+    """read(path), or None when it refuses the file with a one-line `InputError` naming it (counted)."""
+    try:
+        return read(path)
+    except InputError as exc:
+        _one_line_error(exc, path)
+        cases.refused += 1
+        return None
+
+
 # --------------------------------------------------------------------------- seeds
 def _trial(n_frames=12, names=("RASI", "LASI", "RKNE", "LKNE", "RANK")) -> MarkerTrial:
     rng = np.random.default_rng(0)
@@ -118,11 +128,8 @@ def _read_c3d_case(path: Path, cases: Cases):
     from kinematics.io.c3d import _header_frames, read_c3d
     from kinematics.io.markers import MAX_COORDINATE_M
 
-    try:
-        tr = read_c3d(path)
-    except InputError as exc:
-        _one_line_error(exc, path)
-        cases.refused += 1
+    tr = read_or_refuse(read_c3d, path, cases)
+    if tr is None:
         return
     check_trial(tr, MAX_COORDINATE_M)
     assert np.all(np.diff(tr.time) > 0)
@@ -269,13 +276,9 @@ def test_fuzz_text(seeds, tmp_path, fmt):
             replaced = r if len(edits) == 1 else None
         path.write_bytes(_enc(t))
         cases.n += 1
-        try:
-            result = read(path)
-        except InputError as exc:
-            _one_line_error(exc, path)
-            cases.refused += 1
-            return
-        check(result, ref, replaced)
+        result = read_or_refuse(read, path, cases)
+        if result is not None:
+            check(result, ref, replaced)
 
     case()
     assert cases.n >= FUZZ_CASES and 0 < cases.refused < cases.n
@@ -295,12 +298,10 @@ def test_fuzz_ply(seeds, tmp_path, seed_name):
     def case(edits):
         path.write_bytes(corrupt_bytes(data, edits))
         cases.n += 1
-        try:
-            mesh, _ = _load_mesh_file(path)
-        except InputError as exc:
-            _one_line_error(exc, path)
-            cases.refused += 1
+        loaded = read_or_refuse(_load_mesh_file, path, cases)
+        if loaded is None:
             return
+        mesh = loaded[0]
         v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
         assert v.ndim == 2 and v.shape[1] == 3 and np.all(np.isfinite(v))
         assert f.ndim == 2 and f.shape[1] == 3 and len(f) and f.min() >= 0 and f.max() < len(v)
