@@ -100,7 +100,8 @@ def _as_cov(c, d: int, name: str) -> np.ndarray:
 def as_gaussian(estimate, *, frame: str = "proximal"):
     """(mean, cov) of any estimate the project produces.
 
-    Accepts a `lowerlimb.estimates.Gaussian`, a ``(mean, cov)`` pair, a `kinematics.algorithms.functional.CentreEstimate`
+    Accepts a `lowerlimb.estimates.Gaussian` (or a value holding one: a `personalize.landmarks.Landmark`,
+    a `Fused`, a `personalize.frames.Joint`), a ``(mean, cov)`` pair, a `kinematics.algorithms.functional.CentreEstimate`
     (``frame`` "proximal" or "distal"), a `SphereFit` (centre, cov), a
     landmarks.json landmark ``{"position", "cov"}`` or a joints.json joint
     ``{"origin", "origin_cov"}``.
@@ -109,6 +110,10 @@ def as_gaussian(estimate, *, frame: str = "proximal"):
         return estimate
     if isinstance(estimate, Gaussian):
         return estimate.mean, estimate.cov
+    if isinstance(getattr(estimate, "gaussian", None), Gaussian):     # a landmark, a fused estimate
+        return estimate.gaussian.mean, estimate.gaussian.cov
+    if isinstance(getattr(estimate, "centre", None), Gaussian):       # a `personalize.frames.Joint`
+        return estimate.centre.mean, estimate.centre.cov
     if isinstance(estimate, dict):
         if "position" in estimate and "cov" in estimate:
             return np.asarray(estimate["position"], float), np.asarray(estimate["cov"], float)

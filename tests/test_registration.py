@@ -332,3 +332,34 @@ def test_default_soft_tissue_prior_is_per_site(world):
     err = lambda r: float(np.linalg.norm(r.R @ c + r.t - (Rt @ c + tt)))  # noqa: E731
     assert err(per_site) < 0.003
     assert err(uniform) > 2 * err(per_site) and err(uniform) > 0.003
+
+
+def test_correspondences_take_each_landmark_from_its_own_bone():
+    """A shank's fibula landmark (RANK) takes its outward normal from the fibula surface, not the tibia's; with a
+    joint axis the landmark is moved onto the axis and the normal is the axis direction, away from its point."""
+    import trimesh
+
+    from lowerlimb.estimates import Gaussian
+    from personalize.landmarks import BoneLandmarks, Landmark
+    from personalize.marker_registration import SURFACE_NORMAL_SD_DEG, marker_correspondences
+
+    tib = trimesh.creation.icosphere(subdivisions=4, radius=0.02)
+    fib = trimesh.creation.icosphere(subdivisions=4, radius=0.01)
+    fib.apply_translation([0.05, 0.0, 0.0])
+    ank = np.array([0.05, 0.01, 0.0])                 # on the fibula sphere, normal +y
+    bones = {"tibia_r": BoneLandmarks("tibia_r", "r", {"RMMA": Landmark(np.array([-0.02, 0.0, 0.0]), 1e-6 * np.eye(3))}),
+             "fibula_r": BoneLandmarks("fibula_r", "r", {"RANK": Landmark(ank, 1e-6 * np.eye(3))})}
+    static = {n: Gaussian.isotropic(np.zeros(3), 0.003) for n in ("RANK", "RMMA")}
+    c = marker_correspondences(bones, ["tibia_r", "fibula_r"], ("RANK", "RMMA"), static,
+                               surfaces={"tibia_r": tib, "fibula_r": fib})
+    assert c.names == ["RANK", "RMMA"]
+    np.testing.assert_allclose(c.normals[0], [0.0, 1.0, 0.0], atol=0.05)      # the tibia's nearest normal is +x
+    np.testing.assert_allclose(c.normals[1], [-1.0, 0.0, 0.0], atol=0.05)
+    assert c.normal_sd_deg == [SURFACE_NORMAL_SD_DEG] * 2
+    assert c.offset[0] == pytest.approx(skin_prior("RANK")[0] + DEFAULT_MARKER_RADIUS)
+    # on the transmalleolar axis through (0.01, 0, 0) along x: projected, normal along the axis away from the point
+    a = marker_correspondences(bones, ["tibia_r", "fibula_r"], ("RANK", "RMMA"), static,
+                               surfaces={"tibia_r": tib, "fibula_r": fib}, axis=([0.01, 0.0, 0.0], [2.0, 0.0, 0.0]))
+    np.testing.assert_allclose(a.mri[0], [0.05, 0.0, 0.0])
+    np.testing.assert_allclose(a.normals[0], [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(a.normals[1], [-1.0, 0.0, 0.0])
