@@ -137,6 +137,20 @@ def _write_folder(folder: Path, scale: float, bones=("femur_r", "tibia_r", "pate
     return out
 
 
+@pytest.mark.parametrize("dtype", [np.int64, float])
+def test_unique_rows_is_numpys_unique_along_rows(dtype):
+    from personalize.io.mesh_repair import _unique_rows
+
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 6, (4000, 3)).astype(dtype) * (0.37 if dtype is float else 1)
+    want = np.unique(a, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    got = _unique_rows(a, return_index=True, return_inverse=True, return_counts=True)
+    assert len(want[0]) == 216  # all 6**3 rows, each repeated
+    for w, g in zip(want, got):
+        assert np.array_equal(np.reshape(w, -1), np.reshape(g, -1)) and np.shape(w)[0] == np.shape(g)[0]
+    assert _unique_rows(a[:0]).shape == (0, 3) and np.array_equal(_unique_rows(a[:1]), a[:1])
+
+
 def test_each_bone_step_is_announced_before_it_runs(tmp_path):
     written = _write_folder(tmp_path / "bones", 1e3, bones=("femur_r", "patella_r"))
     done, said = [], []
