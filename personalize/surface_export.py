@@ -79,7 +79,8 @@ class SurfaceExport:
 def bone_surface_export(input: str | os.PathLike, *, label_map: str | os.PathLike | None = None,
                         bones: Sequence[str] | None = None, target_faces: int | None = None,
                         fix_orientation: bool = False, points: bool = False,
-                        progress: Callable[[str], None] | None = None) -> SurfaceExport:
+                        progress: Callable[[str], None] | None = None,
+                        status: Callable[[str], None] | None = None) -> SurfaceExport:
     """Bone surfaces of a label volume (.nii, .nii.gz, .nrrd) or a folder of bone meshes (.ply, .stl, .obj).
 
     Parameters
@@ -91,6 +92,8 @@ def bone_surface_export(input: str | os.PathLike, *, label_map: str | os.PathLik
     fix_orientation : invert inside-out meshes instead of refusing them
     points : also sample the point clouds with normals
     progress : called with each bone's name when it is done
+    status : called before each bone's reading, repair, surfacing and decimation with what it does
+        (sizes, expected time of a large decimation)
 
     Raises
     ------
@@ -102,7 +105,8 @@ def bone_surface_export(input: str | os.PathLike, *, label_map: str | os.PathLik
     if target_faces is not None and target_faces < MIN_FACES:
         raise InputError("--faces", f"target face count must be at least {MIN_FACES}, got {target_faces}")
     surfaces = load_bones(input, label_map, bones=None if bones is None else list(bones), target_faces=target_faces,
-                          fix_orientation=fix_orientation, eager_points=points, progress=progress)
+                          fix_orientation=fix_orientation, eager_points=points, progress=progress,
+                          status=status)
     return SurfaceExport(Path(input), surfaces, points)
 
 

@@ -61,6 +61,7 @@ def register(app: typer.Typer) -> None:
             task = prog.add_task(f"reading {input.name}", total=None)
             export = bone_surface_export(input, label_map=label_map, bones=bone_names, target_faces=faces,
                                          fix_orientation=fix_orientation, points=points,
-                                         progress=lambda bone: prog.update(task, advance=1, description=f"{bone} done"))
+                                         progress=lambda bone: prog.update(task, advance=1, description=f"{bone} done"),
+                                         status=lambda text: prog.update(task, description=text))
         write_surface_export(export, out)
         typer.echo(f"wrote {len(export.surfaces)} bone surface(s) and surfaces.json to {out}")
