@@ -48,4 +48,4 @@ def read_trial(path: str | os.PathLike, subject_name: str | None = None) -> Mark
         return read_c3d(p, subject=subject_name)
     if suffix == ".trc":
         return read_trc(p)
-    raise InputError(path, f"unsupported marker file type {suffix!r} (expected .c3d or .trc)")
+    raise InputError(path, f"unsupported marker file type {suffix!r} (expected {' or '.join(TRIAL_SUFFIXES)})")
