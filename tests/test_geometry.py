@@ -100,3 +100,20 @@ def test_orient_flips_against_reference_only():
     np.testing.assert_array_equal(orient(np.array([1.0, -2, 0]), [0, 1, 0]), [-1, 2, 0])
     np.testing.assert_array_equal(orient(np.array([1.0, 2, 0]), [0, 1, 0]), [1, 2, 0])
     np.testing.assert_array_equal(orient(np.array([1.0, 0, 0]), [0, 1, 0]), [1, 0, 0])   # orthogonal: kept
+
+
+def test_base_layers_import_nothing_above():
+    """lowerlimb, kinematics and phantoms load (every module) without loading personalize; lowerlimb without either."""
+    import subprocess
+    import sys
+
+    code = ("import importlib, pkgutil, sys\n"
+            "for pkg in ('lowerlimb', 'kinematics', 'phantoms'):\n"
+            "    p = importlib.import_module(pkg)\n"
+            "    for m in pkgutil.walk_packages(p.__path__, pkg + '.'):\n"
+            "        importlib.import_module(m.name)\n"
+            "    loaded = {k.split('.')[0] for k in sys.modules}\n"
+            "    above = {'lowerlimb': {'kinematics', 'phantoms', 'personalize'}}.get(pkg, {'personalize'})\n"
+            "    assert not loaded & above, (pkg, loaded & above)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
