@@ -141,10 +141,7 @@ def plot_deviation(path: str | os.PathLike, independent, deviation, names: Seque
     deviation : array (F,), metres
     names : independent names (axis labels)
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure   # no pyplot: no backend is switched under the caller
 
     X = np.asarray(independent, float)
     X = np.atleast_2d(X.T).T

@@ -17,12 +17,8 @@ __all__ = ["write_subject_report", "write_refusal_report"]
 def write_subject_report(path: Path, summary, ik: dict, bones) -> None:
     """``report.html`` of a run: `personalize.pipeline.SubjectSummary`, the IK results (trial -> result) and the
     `personalize.bone_set.BoneSet` (surfaces and landmarks, pictured per bone)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .html_report import Figure, Section, Table, render_report
+    from .gait_plots import SIDE_COLOURS
+    from .html_report import Figure, Section, Table, new_figure, render_report
 
     est, ls, surfaces = summary.estimates, bones.landmarks, bones.surfaces
     rows = []
@@ -108,27 +104,28 @@ def write_subject_report(path: Path, summary, ik: dict, bones) -> None:
                    caption="Marker residuals of the personalised model's IK")]
     name = next((k for k in ik if k.startswith("gait")), next((k for k in ik if k != "static"), next(iter(ik))))
     res = ik[name]
-    fig, axs = plt.subplots(1, 3, figsize=(12, 3.2))
+    fig = new_figure(12, 3.2)
+    axs = fig.subplots(1, 3)
     for ax, jn in zip(axs, ("hip_flexion", "knee_flexion", "ankle_angle")):
         for s in est.centres:
             c = f"{jn}_{s}"
             if c in res.coordinates:
-                ax.plot(res.time, np.degrees(res.q[:, res.coordinates.index(c)]), label=s)
+                ax.plot(res.time, np.degrees(res.q[:, res.coordinates.index(c)]), label=s,
+                        color=SIDE_COLOURS.get(s[-1].upper()))
         ax.set_title(jn)
         ax.set_xlabel("time (s)")
         ax.set_ylabel("deg (hip, knee: anatomical; others: 0 = static pose)")
         ax.legend()
     fig.tight_layout()
     items.append(Figure(fig, caption=f"{name}: joint angles of the personalised model"))
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(12, 3.2))
+    fig = new_figure(12, 3.2)
+    ax = fig.subplots()
     me = np.nanmean(res.marker_errors, axis=0) * 1e3
     ax.bar(np.arange(len(me)), me)
     ax.set_xticks(np.arange(len(me)), res.markers, rotation=90, fontsize=7)
     ax.set_ylabel("mean error (mm)")
     fig.tight_layout()
     items.append(Figure(fig, caption=f"{name}: mean marker residual per marker (soft-tissue artefact and noise)"))
-    plt.close(fig)
     sections.append(Section("Inverse kinematics", items))
     pics = []
     from ..landmarks.plot import plot_bone
