@@ -294,14 +294,14 @@ def test_bad_parameters_raise_input_error():
 
 
 def test_posed_bones_carry_their_truth():
-    from phantoms.anatomy import _rot
+    from phantoms.bone_shapes import axis_rotation
 
     ph = make_phantom(seed=0, side="r", placement="identity")
     t0 = ph.truth()
     # flex the knee 30 degrees about the knee axis: move tibia, fibula and everything distal
     k_pt, k_dir = _axis(t0, "femur_r", "knee_axis")
     G = np.eye(4)
-    G[:3, :3] = _rot(k_dir, np.deg2rad(30))
+    G[:3, :3] = axis_rotation(k_dir, np.deg2rad(30))
     G[:3, 3] = k_pt - G[:3, :3] @ k_pt
     distal = ("tibia_r", "fibula_r", "talus_r", "calcn_r", "toes_r")
     moved = ph.posed({b: G @ ph.body_from_local[b] for b in distal})
