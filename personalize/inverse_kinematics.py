@@ -15,7 +15,9 @@ what OpenSim's IK tool writes:
     translations, ``inDegrees=yes``);
 ``RESULT_marker_errors.sto``
     per frame ``total_squared_error`` (m^2, unweighted sum over the markers
-    present), ``marker_error_RMS`` and ``marker_error_max`` (m).
+    present), ``marker_error_RMS`` and ``marker_error_max`` (m), as OpenSim's
+    IK tool writes them, then one column per marker (|model - measured|, m);
+    `write_marker_errors`, also used by ``personalize run``.
 
 Frames where every tracked marker is missing are left out of both files.
 """
@@ -32,7 +34,7 @@ from kinematics.algorithms.ik import IKResult
 from lowerlimb.errors import InputError
 
 __all__ = ["LIMITS", "TrialIK", "check_ik_output", "marker_errors_path", "trial_inverse_kinematics",
-           "write_trial_ik"]
+           "write_marker_errors", "write_trial_ik"]
 
 LIMITS = ("clamped", "all", "none")
 
@@ -197,16 +199,35 @@ def write_trial_ik(result: TrialIK, out: str | os.PathLike) -> tuple[Path, Path]
     -------
     (mot_path, marker_errors_path)
     """
-    from kinematics.io.storage import write_mot, write_sto
+    from kinematics.io.storage import write_mot
 
     out = Path(out)
     res, ok = result.ik, result.ik.solved
     write_mot(out, result.coordinates, res.time[ok], res.q[ok], in_degrees=True, rotational=result.rotational)
-    err_path = marker_errors_path(out)
-    sq = np.nansum(res.marker_errors[ok] ** 2, axis=1)
-    write_sto(err_path, ["total_squared_error", "marker_error_RMS", "marker_error_max"], res.time[ok],
-              np.stack([sq, res.rms[ok], res.max_error[ok]], axis=1),
-              header_extra=[f"Marker errors of {out.name}: metres (squared error in m^2), model frame",
-                            f"model={result.model_name}", f"trial={result.trial_name}"],
-              name="marker_errors")
+    err_path = write_marker_errors(marker_errors_path(out), res, ok,
+                                   header=[f"Marker errors of {out.name}", f"model={result.model_name}",
+                                           f"trial={result.trial_name}"])
     return out, err_path
+
+
+def write_marker_errors(path: str | os.PathLike, ik: IKResult, frames=None, *, header: Sequence[str] = ()) -> Path:
+    """Write an IK's marker errors as ``.sto``: OpenSim's three columns, then one per marker (m).
+
+    Parameters
+    ----------
+    path : the ``.sto`` file (written atomically)
+    ik : IKResult
+    frames : boolean mask or indices of the frames to write (default: all)
+    header : extra header lines (the units and frame line is always written)
+    """
+    from kinematics.io.storage import write_sto
+
+    sel = slice(None) if frames is None else frames
+    err = ik.marker_errors[sel]
+    with np.errstate(invalid="ignore"):
+        sq = np.nansum(err ** 2, axis=1)
+    values = np.column_stack([sq, ik.rms[sel], ik.max_error[sel], err])
+    return write_sto(path, ["total_squared_error", "marker_error_RMS", "marker_error_max", *ik.markers],
+                     ik.time[sel], values,
+                     header_extra=["units: m (total_squared_error m^2); |model - measured| in the model frame",
+                                   *header], name="marker_errors")

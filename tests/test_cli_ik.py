@@ -49,8 +49,11 @@ def test_cli_ik_writes_mot_in_degrees_and_marker_errors(leg_files, capsys):
     np.testing.assert_allclose(np.radians(vals[:, rot]), q[keep][:, rot], atol=1e-5)
     np.testing.assert_allclose(vals[:, ~rot], q[keep][:, ~rot], atol=1e-5)
     err = read_sto(d / "res" / "walk_ik_marker_errors.sto")
-    assert err.columns == ("total_squared_error", "marker_error_RMS", "marker_error_max")
+    assert err.columns == ("total_squared_error", "marker_error_RMS", "marker_error_max", *m.marker_names)
     assert err.values[:, 1].max() < 1e-5          # exact synthetic markers (TRC rounding only)
+    per = err.values[:, 3:]                       # per marker; OpenSim's columns follow from them
+    np.testing.assert_allclose(err.values[:, 0], np.sum(per ** 2, axis=1), rtol=1e-6, atol=1e-18)
+    np.testing.assert_allclose(err.values[:, 2], per.max(axis=1), rtol=1e-6, atol=1e-12)
 
 
 def test_cli_ik_skips_empty_frames_and_solves_gappy_ones(leg_files, capsys):

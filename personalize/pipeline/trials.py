@@ -32,10 +32,12 @@ def solve_trials(pm, inputs: SubjectInputs, stage: Path, say) -> tuple[dict, dic
     """IK (`kinematics.algorithms.ik.solve_ik`) of the static and every motion trial on the model `pm`.
 
     Writes ``kinematics/<trial>.mot`` (coordinates; rotations in deg) and ``kinematics/<trial>_marker_errors.sto``
-    (|model - measured| per marker, m) into `stage`.  Returns (trial -> IK result, trial -> `TrialFit`).
+    (`personalize.inverse_kinematics.write_marker_errors`: OpenSim's columns, then per marker, m) into `stage`.  Returns (trial -> IK result, trial -> `TrialFit`).
     """
     from kinematics.algorithms.ik import solve_ik
-    from kinematics.io.storage import write_mot, write_sto
+    from kinematics.io.storage import write_mot
+
+    from ..inverse_kinematics import write_marker_errors
 
     results, fits = {}, {}
     rot = [c.name for c in pm.model.coordinates if c.kind == "rotational"]
@@ -46,8 +48,7 @@ def solve_trials(pm, inputs: SubjectInputs, stage: Path, say) -> tuple[dict, dic
         results[name] = res
         write_mot(inside(stage, f"kinematics/{name}.mot"), pm.model.coordinate_names, res.time, res.q, rotational=rot,
                   name=f"IK {name}")
-        write_sto(inside(stage, f"kinematics/{name}_marker_errors.sto"), list(res.markers), res.time, res.marker_errors,
-                  header_extra=["marker errors |model - measured|, m"], name="MarkerErrors")
+        write_marker_errors(inside(stage, f"kinematics/{name}_marker_errors.sto"), res, header=[f"IK {name}"])
         me = np.nanmean(res.marker_errors, axis=0)
         fits[name] = TrialFit(float(np.nanmean(res.rms) * 1e3), float(np.nanmax(res.rms) * 1e3), int(res.q.shape[0]),
                               f"{res.markers[int(np.nanargmax(me))]} {np.nanmax(me) * 1e3:.1f} mm")
