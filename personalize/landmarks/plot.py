@@ -21,24 +21,25 @@ def _view_axes(res: BoneLandmarks, V: np.ndarray) -> np.ndarray:
 
 def plot_bone(mesh, res: BoneLandmarks, path: Path, max_points: int = 4000) -> None:
     """Write a PNG with a frontal (Z-Y) and a sagittal (X-Y) view of the bone (mm)."""
-    import matplotlib
+    from matplotlib.patches import Circle
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from lowerlimb.atomic import atomic_path
+    from personalize.presentation.html_report import new_figure   # Agg canvas, no pyplot state
 
     V = np.asarray(mesh.vertices, float)
     R = _view_axes(res, V)
     o = V.mean(axis=0)
     step = max(1, len(V) // max_points)
     Q = (V[::step] - o) @ R * 1e3
-    fig, axs = plt.subplots(1, 2, figsize=(10, 6))
+    fig = new_figure(10, 6)
+    axs = fig.subplots(1, 2)
     views = (("frontal (Z right, Y up)", 2, 1), ("sagittal (X anterior, Y up)", 0, 1))
     for ax, (title, i, j) in zip(axs, views):
         ax.scatter(Q[:, i], Q[:, j], s=0.3, c="0.7", rasterized=True)
         for name, fit in res.fits.items():
             if fit.get("type") == "sphere":
                 c = (np.asarray(fit["centre"]) - o) @ R * 1e3
-                ax.add_patch(plt.Circle((c[i], c[j]), fit["radius"] * 1e3, fill=False, color="tab:blue", lw=1))
+                ax.add_patch(Circle((c[i], c[j]), fit["radius"] * 1e3, fill=False, color="tab:blue", lw=1))
             elif fit.get("type") == "cylinder":
                 p = (np.asarray(fit["point"]) - o) @ R * 1e3
                 d = np.asarray(fit["axis"]) @ R
@@ -59,5 +60,5 @@ def plot_bone(mesh, res: BoneLandmarks, path: Path, max_points: int = 4000) -> N
     flags = ", ".join(res.flags) if res.flags else "no flags"
     fig.suptitle(f"{res.bone} ({flags})", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
