@@ -101,6 +101,26 @@ def _in_band(d, dist, N, r, band, convex, min_cos, mask) -> np.ndarray:
     return sel
 
 
+def _reselect_and_fit(select, refit, iterations: int, min_points: int, kind: str):
+    """Alternate ``sel = select()`` and ``fit = refit(sel)`` until the selection stops changing.
+
+    Raises FitError when the first selection has fewer than `min_points`
+    points; a later one that small stops the iteration at the last fit.
+    """
+    fit, sel = None, None
+    for _ in range(iterations):
+        sel_new = select()
+        if sel_new.sum() < min_points:
+            if fit is None:
+                raise FitError(f"{kind}: only {int(sel_new.sum())} surface points near the initial guess")
+            break
+        if sel is not None and np.array_equal(sel, sel_new):
+            break
+        sel = sel_new
+        fit = refit(sel)
+    return fit, sel
+
+
 def refine_sphere(points, normals, centre, radius, *, band: float, convex: bool = True,
                   min_cos: float = 0.7, mask=None, iterations: int = 3):
     """Fit a sphere to the points near a first guess, then re-select and refit.
@@ -119,20 +139,18 @@ def refine_sphere(points, normals, centre, radius, *, band: float, convex: bool 
     P = np.asarray(points, float)
     N = np.asarray(normals, float)
     c, r = np.asarray(centre, float), float(radius)
-    fit, sel = None, None
-    for _ in range(iterations):
+
+    def select():
         d = P - c
-        sel_new = _in_band(d, np.linalg.norm(d, axis=1), N, r, band, convex, min_cos, mask)
-        if sel_new.sum() < 20:
-            if fit is None:
-                raise FitError(f"sphere: only {int(sel_new.sum())} surface points near the initial guess")
-            break
-        if sel is not None and np.array_equal(sel, sel_new):
-            break
-        sel = sel_new
+        return _in_band(d, np.linalg.norm(d, axis=1), N, r, band, convex, min_cos, mask)
+
+    def refit(sel):
+        nonlocal c, r
         fit = fit_sphere(P[sel], normals=N[sel])
         c, r = np.asarray(fit.centre, float), float(fit.radius)
-    return fit, sel
+        return fit
+
+    return _reselect_and_fit(select, refit, iterations, 20, "sphere")
 
 
 def refine_cylinder(points, normals, point, axis, radius, *, band: float, convex: bool = True,
@@ -143,28 +161,27 @@ def refine_cylinder(points, normals, point, axis, radius, *, band: float, convex
     P = np.asarray(points, float)
     N = np.asarray(normals, float)
     p0, u, r = np.asarray(point, float), unit(axis), float(radius)
-    fit, sel = None, None
-    for _ in range(iterations):
+
+    def select():
         d = P - p0
         t = d @ u
         radial = d - t[:, None] * u
-        sel_new = _in_band(radial, np.linalg.norm(radial, axis=1), N, r, band, convex, min_cos, mask)
+        sel = _in_band(radial, np.linalg.norm(radial, axis=1), N, r, band, convex, min_cos, mask)
         if half_length is not None:
-            sel_new &= np.abs(t) < half_length
-        if sel_new.sum() < 30:
-            if fit is None:
-                raise FitError(f"cylinder: only {int(sel_new.sum())} surface points near the initial guess")
-            break
-        if sel is not None and np.array_equal(sel, sel_new):
-            break
-        sel = sel_new
+            sel &= np.abs(t) < half_length
+        return sel
+
+    def refit(sel):
+        nonlocal p0, u, r
         fit = fit_cylinder(P[sel], normals=N[sel], axis_hint=u)
-        u_new = unit(np.asarray(fit.axis, float))
-        u = orient(u_new, u)
+        u = orient(unit(np.asarray(fit.axis, float)), u)
         p0, r = np.asarray(fit.point, float), float(fit.radius)
         # keep the reference point mid-selection so `half_length` stays centred
         tt = (P[sel] - p0) @ u
         p0 = p0 + 0.5 * (tt.min() + tt.max()) * u
+        return fit
+
+    fit, sel = _reselect_and_fit(select, refit, iterations, 30, "cylinder")
     return fit, sel, p0, u
 
 
