@@ -19,7 +19,8 @@ minimises the Mahalanobis sum
 
     χ² = Σ_k r_kᵀ Σ_k⁻¹ r_k,   r_k = m_k - (R q_k + t),
 
-solved by Gauss-Newton on the six increments x = (ω, δ) (rad, m) started from
+solved by damped Levenberg-Marquardt (a step is kept only if χ² decreases;
+see `_fit`) on the six increments x = (ω, δ) (rad, m) started from
 the closed-form weighted Kabsch/Horn solution, with the analytic Jacobian
 ∂(R q + t)/∂x = [-[R q + t - c]×, I].  The transform covariance is the inverse
 information matrix (JᵀWJ)⁻¹ (W = blockdiag Σ_k⁻¹), inflated by χ²/dof only
@@ -274,37 +275,81 @@ def _as_covs(x, K: int, name: str, default_sd: float) -> np.ndarray:
     raise InputError(name, f"expected a sd, {K} sds or {K} 3x3 covariances, got shape {a.shape}")
 
 
-def _fit(Q, M, Cq, Cm, *, max_iter: int = 50, tol: float = 1e-13):
-    """Gauss-Newton on χ² = Σ r_kᵀ Σ_k⁻¹ r_k; returns R, t, c, H (information), r, Σ."""
-    K = len(Q)
-    w0 = 1.0 / np.trace(Cq + Cm, axis1=1, axis2=2)
-    R, t = kabsch(Q, M, w0)
-    c = (w0 @ M) / w0.sum()
-    for _ in range(max_iter):
-        S = np.einsum("ij,kjl,ml->kim", R, Cq, R) + Cm
-        W = np.linalg.inv(S)
-        y = Q @ R.T + t
-        r = M - y
-        J = np.zeros((K, 3, 6))
-        J[:, :, :3] = -skew(y - c)
-        J[:, :, 3:] = np.eye(3)
-        H = np.einsum("kai,kab,kbj->ij", J, W, J)
-        g = np.einsum("kai,kab,kb->i", J, W, r)
-        dx = np.linalg.lstsq(H, g, rcond=None)[0]
-        dR = Rotation.from_rotvec(dx[:3]).as_matrix()
-        # y ← c + dR (y - c) + δ  ⇒  R ← dR R,  t ← c + dR (t - c) + δ
-        R = dR @ R
-        t = c + dR @ (t - c) + dx[3:]
-        if np.max(np.abs(dx)) < tol:
-            break
+#: Levenberg-Marquardt controls of `_fit`: initial damping relative to max diag(H), the factor it is divided by
+#: on an accepted step (multiplied by on a rejected one), the largest damping before giving up, and the
+#: convergence tests (relative χ² decrease, largest step component in rad or m).
+LM_LAMBDA0 = 1e-3
+LM_FACTOR = 10.0
+LM_LAMBDA_MAX = 1e16
+LM_RTOL = 1e-14
+LM_XTOL = 1e-13
+
+
+def _linearise(Q, M, Cq, Cm, R, t, c):
+    """Residuals, noise, Jacobian, information and gradient at (R, t): r, Σ, J, H = JᵀWJ, g = JᵀWr, χ²."""
     S = np.einsum("ij,kjl,ml->kim", R, Cq, R) + Cm
     W = np.linalg.inv(S)
     y = Q @ R.T + t
-    J = np.zeros((K, 3, 6))
+    r = M - y
+    J = np.zeros((len(Q), 3, 6))
     J[:, :, :3] = -skew(y - c)
     J[:, :, 3:] = np.eye(3)
     H = np.einsum("kai,kab,kbj->ij", J, W, J)
-    return R, t, c, H, M - y, S, J
+    g = np.einsum("kai,kab,kb->i", J, W, r)
+    chi2 = float(np.einsum("ka,kab,kb->", r, W, r))
+    return r, S, J, H, g, chi2
+
+
+def _step(R, t, c, dx):
+    """Apply the increment x = (ω, δ): y ← c + exp([ω]×)(y - c) + δ, i.e. R ← dR R, t ← c + dR (t - c) + δ."""
+    dR = Rotation.from_rotvec(dx[:3]).as_matrix()
+    return dR @ R, c + dR @ (t - c) + dx[3:]
+
+
+def _fit(Q, M, Cq, Cm, *, max_iter: int = 100, R0=None, t0=None):
+    """Levenberg-Marquardt on χ² = Σ r_kᵀ Σ_k⁻¹ r_k; returns R, t, c, H (information), r, Σ, J.
+
+    Each step solves (H + λ diag H) x = g (H = JᵀWJ, g = JᵀWr, Marquardt's
+    scaling, so rad and m are commensurate) and is accepted only if χ²
+    (with Σ_k re-evaluated at the new rotation) decreases; then λ ← λ / 10,
+    else λ ← 10 λ and the step is retried.  Stops when an accepted step
+    changes χ² by less than `LM_RTOL` relative, or its largest component is
+    below `LM_XTOL`, or λ exceeds `LM_LAMBDA_MAX` (no decrease possible:
+    the current point is kept).  χ² therefore never increases from the start
+    (weighted Kabsch/Horn, or R0, t0 when given); near the optimum λ → 0 and
+    the steps are Gauss-Newton's, so a well-posed problem reaches the same
+    minimum.  Undamped Gauss-Newton from the same start can diverge when
+    the linearisation is poor (large residuals, mislabelled markers): see
+    tests/test_registration.py::test_damped_fit_cannot_diverge.
+    """
+    w0 = 1.0 / np.trace(Cq + Cm, axis1=1, axis2=2)
+    if R0 is None:
+        R, t = kabsch(Q, M, w0)
+    else:
+        R, t = np.asarray(R0, float), np.asarray(t0, float)
+    c = (w0 @ M) / w0.sum()
+    r, S, J, H, g, chi2 = _linearise(Q, M, Cq, Cm, R, t, c)
+    lam = LM_LAMBDA0 * float(np.max(np.diag(H)))
+    for _ in range(max_iter):
+        D = np.diag(np.diag(H))
+        dx = np.linalg.lstsq(H + lam * D, g, rcond=None)[0]
+        R1, t1 = _step(R, t, c, dx)
+        lin1 = _linearise(Q, M, Cq, Cm, R1, t1, c)
+        small = np.max(np.abs(dx)) < LM_XTOL
+        if lin1[5] <= chi2:
+            decrease = chi2 - lin1[5]
+            R, t = R1, t1
+            r, S, J, H, g, chi2 = lin1
+            lam /= LM_FACTOR
+            if small or decrease <= LM_RTOL * max(chi2, 1e-300):
+                break
+        else:
+            if small:
+                break
+            lam *= LM_FACTOR
+            if lam > LM_LAMBDA_MAX * float(np.max(np.diag(H))):
+                break
+    return R, t, c, H, r, S, J
 
 
 def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER_PLACEMENT_SD, normals=None,
