@@ -31,6 +31,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from kinematics.algorithms.ik import IKResult
+from kinematics.gait.lab_frame import LabFrame
 from lowerlimb.errors import InputError
 
 __all__ = ["LIMITS", "TrialIK", "check_ik_output", "marker_errors_path", "trial_inverse_kinematics",
@@ -51,6 +52,9 @@ class TrialIK:
     rotational : tuple of str, the rotational coordinates (degrees in the .mot file)
     model_name, trial_name : file names of the inputs (stated in the output headers)
     warnings : tuple of str, setup tasks ignored, skipped or underdetermined frames
+    lab : LabFrame or None, the trial's vertical and progression read from its markers
+        (`kinematics.gait.lab_frame.detect_lab`); None when they do not tell it, `lab_problem` says why
+    lab_problem : str, why the lab could not be read ('' when `lab` is set)
     """
 
     ik: IKResult
@@ -59,6 +63,8 @@ class TrialIK:
     model_name: str
     trial_name: str
     warnings: tuple[str, ...] = ()
+    lab: LabFrame | None = None
+    lab_problem: str = ""
 
     @property
     def solved(self) -> np.ndarray:
@@ -137,6 +143,7 @@ def trial_inverse_kinematics(model_path: str | os.PathLike, trial_path: str | os
         marker of the model or in the wrong unit (`check_trial_scale`).
     """
     from kinematics.algorithms.ik import check_trial_scale, solve_ik
+    from kinematics.gait.lab_frame import detect_lab
     from kinematics.io.ik_setup import read_ik_setup
     from kinematics.io.opensim_io import load_osim
     from kinematics.io.storage import read_trc
@@ -189,7 +196,12 @@ def trial_inverse_kinematics(model_path: str | os.PathLike, trial_path: str | os
                         f"(times {_times(res.time, und)}); their undetermined coordinates keep the previous "
                         "frame's value")
     rot = tuple(c.name for c in model.coordinates if c.kind == "rotational")
-    return TrialIK(res, tuple(model.coordinate_names), rot, model_path.name, trial_path.name, tuple(warnings))
+    try:
+        lab, lab_problem = detect_lab(None, [trial]), ""
+    except InputError as exc:
+        lab, lab_problem = None, str(exc)
+    return TrialIK(res, tuple(model.coordinate_names), rot, model_path.name, trial_path.name, tuple(warnings),
+                   lab, lab_problem)
 
 
 def write_trial_ik(result: TrialIK, out: str | os.PathLike) -> tuple[Path, Path]:

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kinematics.gait.lab_frame import LabFrame
 from kinematics.gait.reconstruction import Reconstruction
 from kinematics.io.markers import MarkerTrial
 from lowerlimb.errors import InputError
@@ -54,6 +55,9 @@ class LegReconstruction:
     inputs : dict ``trial``, ``static``, ``functional``, ``subject`` -> path as given (or None)
     notes : tuple of str, unfilled gaps and the reconstruction's notes (calibrations used)
     gaps : tuple of dict, every marker gap found (trial, marker, start_s, end_s, frames, filled, reason)
+    lab : LabFrame or None, the lab's vertical and progression read from the static and the trial
+        (`kinematics.gait.lab_frame.detect_lab`); None when they do not tell it, `lab_problem` says why
+    lab_problem : str, why the lab could not be read ('' when `lab` is set)
     """
 
     reconstruction: Reconstruction
@@ -61,6 +65,8 @@ class LegReconstruction:
     inputs: dict
     notes: tuple[str, ...]
     gaps: tuple[dict, ...]
+    lab: LabFrame | None = None
+    lab_problem: str = ""
 
     @property
     def method(self) -> str:
@@ -147,7 +153,19 @@ def reconstruct_legs(trial: str | os.PathLike, *, method: str, subject: str | os
     if np.all(~np.isfinite(rec.angle_table())):
         raise InputError(trial, "no frame could be reconstructed (markers missing in every frame?)")
     inputs = {"trial": trial, "static": static, "functional": functional, "subject": subject}
-    return LegReconstruction(rec, filled["trial"], inputs, tuple(notes) + tuple(rec.notes), tuple(gap_log))
+    lab, lab_problem = _lab(filled.get("static"), filled["trial"])
+    return LegReconstruction(rec, filled["trial"], inputs, tuple(notes) + tuple(rec.notes), tuple(gap_log),
+                             lab, lab_problem)
+
+
+def _lab(static: MarkerTrial | None, trial: MarkerTrial) -> tuple[LabFrame | None, str]:
+    """The lab read from the data, or None and the one-line reason (reported, not yet enforced)."""
+    from kinematics.gait.lab_frame import detect_lab
+
+    try:
+        return detect_lab(static, [trial]), ""
+    except InputError as exc:
+        return None, str(exc)
 
 
 def _sd(cov) -> list[float]:

@@ -133,3 +133,28 @@ def test_trial_ik_from_a_script(leg_files, tmp_path):
     np.testing.assert_allclose(np.radians(read_mot(mot).values[:, rot]), res.ik.q[:, rot], atol=1e-6)
     with pytest.raises(InputError, match="clamped, all or none"):
         trial_inverse_kinematics(model_path, trc, limits="some")
+
+
+def test_cli_ik_reads_the_lab(shared_data, tmp_path, capsys):
+    """opensim_gait2392's walk (Y-up TRC, OpenSim names, walking in place): Y up, facing +X, printed and returned."""
+    from personalize.inverse_kinematics import trial_inverse_kinematics
+
+    d = shared_data / GAIT
+    model, trc = d / "subject01_simbody_adjusted.osim", d / "subject01_walk1.trc"
+    assert main(["ik", str(model), str(trc), "--out", str(tmp_path / "w.mot"), "--start", "0.5", "--end", "0.6"]) == 0
+    assert "lab: Y up, facing +X, floor at 0.03" in capsys.readouterr().err
+    res = trial_inverse_kinematics(model, trc, start=0.5, end=0.6)
+    np.testing.assert_array_equal(res.lab.up, [0, 1, 0])
+    # heel-to-toe over a tenth of a stride: 4.6 deg off +X (2.7 deg over the whole trial)
+    assert res.lab.forward @ [1, 0, 0] > np.cos(np.radians(10))
+    np.testing.assert_allclose(res.lab.rotation_to_opensim @ res.lab.up, [0, 1, 0])
+
+
+def test_trial_ik_without_a_readable_lab_says_why(leg_files, tmp_path):
+    """A leg without pelvis or foot names standing still: no lab, the reason kept, the IK unchanged."""
+    from personalize.inverse_kinematics import trial_inverse_kinematics
+
+    m, model_path, t, q, x, d = leg_files
+    res = trial_inverse_kinematics(model_path, _write(tmp_path, "walk.trc", m, x, t), end=0.1)
+    assert res.lab is None and "walk.trc: cannot tell the feet from the head" in res.lab_problem
+    assert res.warnings == () and res.rms_max < 1e-5

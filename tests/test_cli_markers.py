@@ -122,3 +122,23 @@ def test_leg_reconstruction_from_a_script(lab, tmp_path):
     (tmp_path / "gait.txt").write_text("x")
     with pytest.raises(InputError, match="unsupported marker file type '.txt'"):
         read_trial(tmp_path / "gait.txt")
+
+
+def test_lab_is_read_from_the_pig_trials(shared_data, tmp_path, capsys):
+    """mocap_pig (Z-up C3D, Plug-in-Gait): the lab line names +Z up and the -X walk; the library result holds it."""
+    from personalize.leg_reconstruction import reconstruct_legs
+
+    d = shared_data / "mocap_pig"
+    code = main(["markers", str(d / "Movement_trial.c3d"), "--method", "pig", "--subject", str(d / "Test.vsk"),
+                 "--static", str(d / "Static_trial.c3d"), "--out", str(tmp_path / "o"), "--no-plot"])
+    assert code == 0
+    assert "lab: Z up, walking -X, floor at -0.158 m" in capsys.readouterr().err
+    res = reconstruct_legs(d / "Movement_trial.c3d", method="pig", subject=d / "Test.vsk")
+    np.testing.assert_array_equal(res.lab.up, [0, 0, 1])
+    assert res.lab.forward @ [-1, 0, 0] > np.cos(np.radians(5)) and res.lab_problem == ""
+
+
+def test_lab_of_the_phantom(lab, tmp_path, capsys):
+    """The motion phantom's lab is Z up; its gait trial walks along +X."""
+    assert _run(lab, tmp_path / "o", "pig", "--no-plot") == 0
+    assert "lab: Z up, walking +X" in capsys.readouterr().err

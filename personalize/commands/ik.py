@@ -43,5 +43,7 @@ def register(app: typer.Typer) -> None:
         write_trial_ik(res, out)
         for w in res.warnings:
             console.print(f"warning: {w}")
+        console.print(f"lab: {res.lab.describe()}" if res.lab is not None else f"lab: not detected ({res.lab_problem})",
+                      markup=False, highlight=False)
         console.print(f"ik: {int(res.solved.sum())} frames, marker RMS mean {1e3 * res.rms_mean:.2f} mm "
                       f"(max {1e3 * res.rms_max:.2f} mm) -> {out}")

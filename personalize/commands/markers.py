@@ -40,5 +40,7 @@ def register(app: typer.Typer) -> None:
         write_leg_reconstruction(res, out, plot=not no_plot)
         for n in res.notes:
             typer.echo(f"note: {n}", err=True)
+        typer.echo(f"lab: {res.lab.describe()}" if res.lab is not None else f"lab: not detected ({res.lab_problem})",
+                   err=True)
         typer.echo(f"{method}: {res.valid_frames}/{res.frames} frames reconstructed; wrote centres.trc, "
                    f"angles.mot{'' if no_plot else ', angles.png'}, report.json to {out}")
