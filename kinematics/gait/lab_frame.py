@@ -20,8 +20,9 @@ points up.  The lab's vertical is the signed lab axis closest to it,
     \hat u = \operatorname{sign}(d_{k^*})\, e_{k^*}, \qquad
     \theta = \angle(d, \hat u),
 
-and the lab is refused as ambiguous when :math:`\theta > \theta_{max}`
-(`MAX_TILT_DEG`).  The floor height is the `FLOOR_PERCENTILE` percentile of
+and the lab is refused as ambiguous when any one trial's offset is more than
+:math:`\theta_{max}` (`MAX_TILT_DEG`) from its nearest lab axis, or when the
+trials disagree on that axis.  The floor height is the `FLOOR_PERCENTILE` percentile of
 the foot markers' heights :math:`\hat u \cdot x` (marker centres, so it lies a
 marker radius above the true floor).
 
@@ -43,9 +44,12 @@ Markers are found by name first (Plug-in-Gait ``LASI``, ``RPSI``, ``SACR``,
 ``R.Toe.Tip``, ``L.Ankle.Lat``; any ``Subject:`` prefix ignored).  When a
 trial has no such names, geometry stands in: the body's long axis is the lab
 axis along which the markers of a frame spread the most (median over
-frames), the feet are the end of it whose group of markers (the nearest
-`END_FRACTION` of the extent) spreads wider across it (two feet against one
-head or pelvis), and the pelvis centroid becomes the centroid of all markers.
+frames); in a moving trial the feet are the end of it whose group of markers
+(the nearest `END_FRACTION` of the extent) spreads at least
+`MIN_SPREAD_RATIO` times wider across it (the stride parts the feet; the head
+is one cluster); a static pose (often arms out) takes its sign from the other
+trials, and with none the lab is refused.  The two end groups then stand for
+the pelvis and the feet, and the floor is taken from all marker samples.
 `LabFrame.evidence` says which rule gave each answer.
 """
 from __future__ import annotations
