@@ -23,8 +23,7 @@ def plot_bone(mesh, res: BoneLandmarks, path: Path, max_points: int = 4000) -> N
     """Write a PNG with a frontal (Z-Y) and a sagittal (X-Y) view of the bone (mm)."""
     from matplotlib.patches import Circle
 
-    from lowerlimb.atomic import atomic_path
-    from personalize.presentation.html_report import new_figure   # Agg canvas, no pyplot state
+    from personalize.presentation.html_report import new_figure, save_png   # Agg canvas, no pyplot state
 
     V = np.asarray(mesh.vertices, float)
     R = _view_axes(res, V)
@@ -60,5 +59,4 @@ def plot_bone(mesh, res: BoneLandmarks, path: Path, max_points: int = 4000) -> N
     flags = ", ".join(res.flags) if res.flags else "no flags"
     fig.suptitle(f"{res.bone} ({flags})", fontsize=10)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
+    save_png(fig, path, dpi=90)

@@ -19,7 +19,6 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from kinematics.mechanisms.correlative import CorrelativeLaw
-from lowerlimb.atomic import atomic_path
 from lowerlimb.errors import InputError
 
 __all__ = ["TextTable", "coefficient_table", "deviation_table", "fit_table", "format_number", "plot_deviation"]
@@ -141,7 +140,7 @@ def plot_deviation(path: str | os.PathLike, independent, deviation, names: Seque
     deviation : array (F,), metres
     names : independent names (axis labels)
     """
-    from matplotlib.figure import Figure   # no pyplot: no backend is switched under the caller
+    from personalize.presentation.html_report import new_figure, save_png   # no pyplot, no backend switched
 
     X = np.asarray(independent, float)
     X = np.atleast_2d(X.T).T
@@ -149,7 +148,7 @@ def plot_deviation(path: str | os.PathLike, independent, deviation, names: Seque
     if angle_unit == "deg":
         X = np.degrees(X)
     k = X.shape[1]
-    fig = Figure(figsize=(7.5, 6.0), dpi=110)
+    fig = new_figure(7.5, 6.0)
     if k >= 3:
         ax = fig.add_subplot(111, projection="3d")
         sc = ax.scatter(X[:, 0], X[:, 1], X[:, 2], c=dev, cmap="jet", s=8, vmin=dev.min(), vmax=dev.max())
@@ -167,7 +166,4 @@ def plot_deviation(path: str | os.PathLike, independent, deviation, names: Seque
         ax.set_ylabel(f"{names[1]} ({angle_unit})")
     fig.colorbar(sc, ax=ax, shrink=0.7, pad=0.12, label=f"deviation ({unit}), blue = min, red = max")
     ax.set_title(title or "Deviation between data and correlative law")
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    return path
+    return save_png(fig, path, dpi=110)

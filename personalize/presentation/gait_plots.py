@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lowerlimb.atomic import atomic_path
+from personalize.presentation.html_report import new_figure, save_png
 
 __all__ = [
     "ANGLE_PANELS",
@@ -42,8 +42,6 @@ MOMENT_PANELS = {
 
 def _figure(width: float, height: float):
     # a Figure on its own Agg canvas: no pyplot state, no backend switched under a notebook user
-    from personalize.presentation.html_report import new_figure
-
     return new_figure(width, height)
 
 
@@ -93,10 +91,7 @@ def plot_gait_grid(path: str | os.PathLike, stats: dict, quantity: str, unit: st
     axes[0, 0].legend(fontsize=7, loc="best")
     fig.suptitle(title or f"Joint {quantity}s (mean ± 1 sd; dashed: toe off)", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    return path
+    return save_png(fig, path, dpi=120)
 
 
 def plot_power_row(path: str | os.PathLike, stats: dict, unit: str = "W/kg", *, joints=("hip", "knee", "ankle"),
@@ -110,10 +105,7 @@ def plot_power_row(path: str | os.PathLike, stats: dict, unit: str = "W/kg", *, 
     axes[0, 0].legend(fontsize=7, loc="best")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    return path
+    return save_png(fig, path, dpi=120)
 
 
 def plot_foot_angle_fit(path: str | os.PathLike, phases: list[dict], *, title: str = "") -> Path:
@@ -138,7 +130,4 @@ def plot_foot_angle_fit(path: str | os.PathLike, phases: list[dict], *, title: s
     axes[0, 0].legend(fontsize=7)
     fig.suptitle(title or "Foot element: measured and simulated hind-foot orientation", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    return path
+    return save_png(fig, path, dpi=120)

@@ -239,6 +239,14 @@ def new_figure(width: float = 6.4, height: float = 4.0):
     return fig
 
 
+def save_png(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
+    """Write a matplotlib Figure to `path` as PNG, atomically (no partial file is ever visible); returns the path."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    return path
+
+
 def find_chromium() -> str | None:
     """Path of a Chromium/Chrome executable, or None."""
     import shutil

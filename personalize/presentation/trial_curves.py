@@ -37,10 +37,9 @@ def _figure(size):
 
 
 def _save(fig, path: str | os.PathLike) -> None:
-    from lowerlimb.atomic import atomic_path
+    from personalize.presentation.html_report import save_png
 
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
+    save_png(fig, path, dpi=110)
 
 
 def plot_angles(path: str | os.PathLike, time: np.ndarray, angles: Mapping[str, np.ndarray]) -> None:
