@@ -25,20 +25,25 @@ import numpy as np
 
 from lowerlimb.errors import InputError
 
-__all__ = ["MIN_FACES", "UNIT_SCALE", "SurfaceExport", "bone_surface_export", "mesh_ply_bytes", "points_ply_bytes",
+__all__ = ["MIN_FACES", "SurfaceExport", "bone_surface_export", "mesh_ply_bytes", "points_ply_bytes",
            "surfaces_document", "write_surface_export"]
 
-#: length unit -> its number per metre
-UNIT_SCALE = {"m": 1.0, "mm": 1e3, "um": 1e6, "cm": 1e2}
 MIN_FACES = 100
 _VOLUME_LEVEL = ("ignored_files", "unmapped_labels")
+
+
+def _per_metre(unit: str) -> float:
+    """How many `unit` make a metre (the readers' `personalize.io.units.UNIT_SCALE` is metres per unit)."""
+    from personalize.io.units import UNIT_SCALE
+
+    return 1.0 / UNIT_SCALE[unit]
 
 
 def mesh_ply_bytes(mesh, unit: str, comments: Sequence[str]) -> bytes:
     """Binary PLY of `mesh` (metres) written in `unit`, with header comments right after the format line."""
     import trimesh
 
-    scaled = trimesh.Trimesh(np.asarray(mesh.vertices) * UNIT_SCALE[unit], mesh.faces, process=False)
+    scaled = trimesh.Trimesh(np.asarray(mesh.vertices) * _per_metre(unit), mesh.faces, process=False)
     data = trimesh.exchange.ply.export_ply(scaled, encoding="binary", include_attributes=False)
     head, sep, body = data.partition(b"end_header\n")
     lines = head.split(b"\n")
@@ -170,7 +175,7 @@ def write_surface_export(export: SurfaceExport, out: str | os.PathLike) -> dict:
         files[f"{name}.ply"] = mesh_ply_bytes(s.mesh, unit, comments)
         if export.points:
             pc = s.cloud
-            files[f"{name}_points.ply"] = points_ply_bytes(pc.points * UNIT_SCALE[unit], pc.normals,
+            files[f"{name}_points.ply"] = points_ply_bytes(pc.points * _per_metre(unit), pc.normals,
                                                            comments + ["outward unit normals"])
     with replaced_dir(out) as stage:
         for rel, data in files.items():
