@@ -19,7 +19,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["unit", "skew", "frame_zy", "frame_yz", "kabsch", "kabsch_rotation", "vertex_normals",
+__all__ = ["unit", "skew", "frame_zy", "frame_yz", "kabsch", "kabsch_rotation", "vertex_normals", "signed_volume",
            "orient", "DEFAULT_MARKER_DIAMETER", "DEFAULT_MARKER_RADIUS", "marker_radius"]
 
 
@@ -143,6 +143,17 @@ def kabsch(P, Q, weights=None) -> tuple[np.ndarray, np.ndarray]:
         H = (P - pb).T @ (w[:, None] * (Q - qb))
     R, _ = kabsch_rotation(H)
     return R, qb - R @ pb
+
+
+def signed_volume(vertices, faces) -> float:
+    """Signed enclosed volume ``sum_f v0 . (v1 x v2) / 6`` of a triangle mesh (positive for outward faces).
+
+    Taken about the vertex centroid: exact for closed meshes (any origin), and a
+    stable orientation measure for open ones.
+    """
+    vv = np.asarray(vertices, float)
+    v = (vv - vv.mean(axis=0))[np.asarray(faces)]
+    return float(np.einsum("ij,ij->", v[:, 0], np.cross(v[:, 1], v[:, 2])) / 6.0)
 
 
 def vertex_normals(vertices, faces) -> np.ndarray:

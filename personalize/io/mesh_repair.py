@@ -12,6 +12,7 @@ import numpy as np
 import trimesh
 
 from lowerlimb.errors import InputError
+from lowerlimb.geometry import signed_volume
 
 __all__ = ["check_and_repair_mesh", "main_extent"]
 
@@ -67,13 +68,6 @@ def _weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarr
     rep = {"merged_vertices": int(len(v) - len(uniq)), "collapsed_faces_removed": int(collapsed.sum()),
            "duplicate_faces_removed": int(n_rep)}
     return uniq[used], remap[f], rep
-
-
-def _centroid_volume(mesh: trimesh.Trimesh) -> float:
-    """Signed volume about the vertex centroid (exact if closed, an orientation cue if open)."""
-    v = np.asarray(mesh.vertices, float)
-    t = (v - v.mean(axis=0))[np.asarray(mesh.faces)]
-    return float(np.einsum("ij,ij->", t[:, 0], np.cross(t[:, 1], t[:, 2])) / 6.0)
 
 
 def _largest_hole_perimeter(mesh: trimesh.Trimesh) -> float:
@@ -237,14 +231,14 @@ def check_and_repair_mesh(mesh: trimesh.Trimesh, bone: str, source: str | os.Pat
                                  f"(largest boundary loop {_largest_hole_perimeter(p):.3g} m)")
         if not p.is_winding_consistent:
             p = _fix_winding(p)
-            if _centroid_volume(p) < 0:
+            if signed_volume(p.vertices, p.faces) < 0:
                 p.invert()
             report["winding_repaired_components"] += 1
         elif not p.is_watertight:
             # open (toes): no inside to test; orient by the volume about the centroid
-            if _centroid_volume(p) < 0:
+            if signed_volume(p.vertices, p.faces) < 0:
                 p.invert()
-        elif _centroid_volume(p) < 0:
+        elif signed_volume(p.vertices, p.faces) < 0:
             inverted_parts += 1
             if fix_orientation:
                 p.invert()

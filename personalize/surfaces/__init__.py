@@ -12,7 +12,7 @@ bone_surfaces
     Every bone of a label volume or mesh folder as a `BoneSurface` (`load_bones`).
 """
 from .bone_surfaces import BoneSurface, BoneSurfaces, load_bones, surfaces_from_labels
-from .extraction import decimate, extract_surface, signed_volume, taubin_smooth
+from .extraction import decimate, extract_surface, taubin_smooth
 from .masks import clean_mask
 from .sampling import PointCloud, point_cloud, surface_distance
 
@@ -28,5 +28,4 @@ __all__ = [
     "load_bones",
     "taubin_smooth",
     "decimate",
-    "signed_volume",
 ]

@@ -17,10 +17,11 @@ import numpy as np
 import trimesh
 
 from lowerlimb.errors import InputError
+from lowerlimb.geometry import signed_volume
 from personalize.io import LabelVolume, is_label_volume_path, read_label_volume, read_mesh_folder_detailed
 from personalize.io.units import PLAUSIBLE_EXTENT_M
 
-from .extraction import decimate, decimation_message, extract_surface, signed_volume
+from .extraction import decimate, decimation_message, extract_surface
 from .masks import clean_mask
 from .sampling import PointCloud, point_cloud
 

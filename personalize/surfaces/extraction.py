@@ -33,9 +33,9 @@ import numpy as np
 import scipy.ndimage as ndi
 import trimesh
 
-from lowerlimb.geometry import vertex_normals
+from lowerlimb.geometry import signed_volume, vertex_normals
 
-__all__ = ["extract_surface", "taubin_smooth", "decimate", "decimation_message", "signed_volume"]
+__all__ = ["extract_surface", "taubin_smooth", "decimate", "decimation_message"]
 
 #: CPU seconds of `decimate` per face removed, for the expected time a display shows (the ICL femur
 #: subdivided: 7.5 M -> 500 k faces 334 s, i.e. 48 us; 1.88 M -> 500 k 66 s CPU, 48 us; 470 k -> 100 k
@@ -161,14 +161,3 @@ def extract_surface(mask: np.ndarray, affine_m: np.ndarray, *, sigma: float | No
     if target_faces:
         mesh = decimate(mesh, target_faces)
     return mesh
-
-
-def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Signed enclosed volume ``sum_f v0 . (v1 x v2) / 6`` (positive for outward faces).
-
-    Taken about the vertex centroid: exact for closed meshes (any origin), and a
-    stable orientation measure for open ones.
-    """
-    vv = np.asarray(vertices, float)
-    v = (vv - vv.mean(axis=0))[np.asarray(faces)]
-    return float(np.einsum("ij,ij->", v[:, 0], np.cross(v[:, 1], v[:, 2])) / 6.0)
