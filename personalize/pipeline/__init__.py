@@ -35,11 +35,18 @@ sources were calibrated on TRAINING phantom subjects (mean Mahalanobis d² = 3);
 each constant sits with the estimator it parametrises (`hip`, `knee`, `foot`,
 `motion`) and the numbers it came from are in ``calibration.json``.
 """
-from .inputs import SubjectInputs, check_same_subject, check_trial_legs, find_inputs
-from .joint_estimates import JointEstimates
-from .joints import estimate_joints
-from .run import run_subject
-from .summary import SubjectSummary
+import importlib
 
-__all__ = ["run_subject", "SubjectInputs", "find_inputs", "check_same_subject", "check_trial_legs",
-           "estimate_joints", "JointEstimates", "SubjectSummary"]
+# resolved on first use (PEP 562): importing one stage (e.g. `inputs` for `personalize markers`) does not load
+# the whole pipeline with fusion, registration and scipy.stats
+_EXPORTS = {"run_subject": "run", "SubjectInputs": "inputs", "find_inputs": "inputs",
+            "check_same_subject": "inputs", "check_trial_legs": "inputs", "estimate_joints": "joints",
+            "JointEstimates": "joint_estimates", "SubjectSummary": "summary"}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
