@@ -123,11 +123,16 @@ def write_bone_files(stage: Path, bs: BoneSet, *, fits: bool = True, pictures: b
 
 
 def read_bone_set(input: str | Path, label_map: str | Path | None = None, *, trust_names: bool = False,
-                  progress: Callable[[str], None] | None = None) -> BoneSet:
+                  progress: Callable[[str], None] | None = None,
+                  status: Callable[[str], None] | None = None) -> BoneSet:
     """`analyse_bones` of the surfaces read from a label volume or a mesh folder (`personalize.surfaces.load_bones`).
 
-    Point clouds of the surfaces are not sampled: no stage here reads them."""
+    `progress` is told ``"surface <bone>"`` then ``"landmarks <bone>"`` (two steps per bone); `status`
+    what a long bone read is doing (`load_bones`).  Point clouds of the surfaces are not sampled: no stage
+    here reads them."""
     from .surfaces import load_bones
 
-    surfaces = load_bones(input, label_map, eager_points=False, progress=progress)
-    return analyse_bones(surfaces, input=input, trust_names=trust_names, progress=progress)
+    say = progress or (lambda m: None)
+    surfaces = load_bones(input, label_map, eager_points=False, progress=lambda b: say(f"surface {b}"),
+                          status=status)
+    return analyse_bones(surfaces, input=input, trust_names=trust_names, progress=lambda b: say(f"landmarks {b}"))

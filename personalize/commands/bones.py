@@ -50,10 +50,11 @@ def register(app: typer.Typer) -> None:
         check_output_dir(out, inputs=[input, label_map], overwrite=overwrite)
         console = Console(stderr=True, quiet=quiet)
         with Progress(TextColumn("[bold]bones[/bold] {task.description}"), BarColumn(),
-                      TextColumn("{task.completed} bones"), TimeElapsedColumn(), console=console, transient=True) as prog:
+                      TextColumn("{task.completed} steps"), TimeElapsedColumn(), console=console, transient=True) as prog:
             task = prog.add_task(f"reading {input.name}", total=None)
             bs = read_bone_set(input, label_map, trust_names=trust_names,
-                               progress=lambda b: prog.update(task, advance=1, description=f"{b} done"))
+                               progress=lambda m: prog.update(task, advance=1, description=f"{m} done"),
+                               status=lambda m: prog.update(task, description=m))
         with replaced_dir(out) as stage:
             write_bone_files(stage, bs, pictures=png)
         n_low = sum("low_confidence" in b.flags for b in bs.landmarks.bones.values())
