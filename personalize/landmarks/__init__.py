@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Callable, Mapping
 
 from lowerlimb.errors import FitError, InputError
-from lowerlimb.bones import BONE_NAMES, canonical_bone_name
+from lowerlimb.bones import BONE_NAMES, canonical_bone_name, side_of
 from personalize.io import MESH_SUFFIXES, POINT_SUFFIXES
 
 from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_NOT_CLOSED, FLAG_SIDE_MISMATCH, Axis,
@@ -37,7 +37,7 @@ def joints_from_landmarks(ls: LandmarkSet):
 
 
 def _check_side(res: BoneLandmarks, name: str) -> None:
-    expected = name[-1] if name[-2:] in ("_r", "_l") else None
+    expected = side_of(name)
     if expected and res.side and res.side != expected:
         res.flag(FLAG_SIDE_MISMATCH, f"{name}: the bone's shape is a {'right' if res.side == 'r' else 'left'} bone")
         res.flag(FLAG_LOW_CONFIDENCE)
@@ -145,7 +145,7 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
         try:
             res = fn()
         except FitError as exc:
-            res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+            res = BoneLandmarks(bone=name, side=side_of(name))
             res.flag(FLAG_LOW_CONFIDENCE, f"{name}: detection failed ({exc})")
         if name in sampling_notes:
             res.notes.append(sampling_notes[name])

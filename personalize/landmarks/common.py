@@ -17,6 +17,7 @@ import numpy as np
 
 from lowerlimb.errors import InputError
 from lowerlimb.estimates import Gaussian
+from lowerlimb.bones import side_of
 
 __all__ = [
     "Landmark", "Axis", "BoneLandmarks", "LandmarkSet",
@@ -111,7 +112,7 @@ class BoneLandmarks:
     def from_json(cls, bone: str, d: dict) -> "BoneLandmarks":
         """One bone of a landmarks.json (fits are in fits.json and are not read)."""
         sc = d.get("scalars", {})
-        return cls(bone=bone, side=bone[-1] if bone[-2:] in ("_r", "_l") else None,
+        return cls(bone=bone, side=side_of(bone),
                    landmarks={k: Landmark.from_json(v) for k, v in d.get("landmarks", {}).items()},
                    axes={k: Axis.from_json(v) for k, v in d.get("axes", {}).items()},
                    scalars={k: float(v["value"] if isinstance(v, dict) else v) for k, v in sc.items()},

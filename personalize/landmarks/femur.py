@@ -24,6 +24,7 @@ import numpy as np
 
 from lowerlimb.errors import FitError
 from lowerlimb.geometry import orient, unit
+from lowerlimb.bones import side_of
 
 from .common import FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_TRUNCATED, Axis, BoneLandmarks, Landmark
 from .femoral_condyles import CONDYLE_RADII, condyle_landmarks
@@ -63,7 +64,7 @@ def detect_femur(surface: Surface, name: str = "femur_r") -> BoneLandmarks:
         right), scalars and the ISB frame.
     """
     V, Nrm = surface.vertices, surface.normals
-    res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+    res = BoneLandmarks(bone=name, side=side_of(name))
     lb = long_bone_axes(surface)
     e, h, L = lb.axis, lb.h, lb.length
 
@@ -161,7 +162,7 @@ def detect_femur(surface: Surface, name: str = "femur_r") -> BoneLandmarks:
     ant = -post
     z_right = np.cross(ant, sd)                   # X x Y: to the subject's right
     side = "r" if float(z_right @ med) < 0 else "l"
-    named = name[-1] if name[-2:] in ("_r", "_l") else None
+    named = side_of(name)
     if named is not None and side != named:
         if head is None:
             # no head: the medial direction was a guess; honour the name

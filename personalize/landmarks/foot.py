@@ -21,6 +21,7 @@ import numpy as np
 
 from lowerlimb.errors import FitError
 from lowerlimb.geometry import unit
+from lowerlimb.bones import side_of
 
 from .common import FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark
 from .shape_fits import isotropic_cov, perpendicular, principal_axes, refine_sphere, sphere_centre_cov
@@ -55,7 +56,7 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     talus : Surface, optional
         Used for the superior direction when `up_hint` is not given.
     """
-    res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+    res = BoneLandmarks(bone=name, side=side_of(name))
     V, Nrm, A = surface.vertices, surface.normals, surface.areas
     c, ax, sdv = principal_axes(V, A)
     long_ax = ax[:, 0]
@@ -174,7 +175,7 @@ def detect_toes(surface: Surface, name: str = "toes_r", calcn: BoneLandmarks | N
     the first and fifth head centres (pointing right); alone, the line through
     the two ends of the proximal phalanges' base row is used.
     """
-    res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+    res = BoneLandmarks(bone=name, side=side_of(name))
     if calcn is not None and "mtp_axis" in calcn.axes:
         res.axes["mtp_axis"] = calcn.axes["mtp_axis"]
         return res

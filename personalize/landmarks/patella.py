@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from lowerlimb.geometry import unit
+from lowerlimb.bones import side_of
 
 from .common import FLAG_LOW_CONFIDENCE, BoneLandmarks, Landmark
 from .shape_fits import perpendicular, principal_axes
@@ -30,7 +31,7 @@ def _volume_centroid(s: Surface) -> np.ndarray:
 
 def detect_patella(surface: Surface, name: str = "patella_r", *, femur: Surface | None = None,
                    proximal_hint=None) -> BoneLandmarks:
-    res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+    res = BoneLandmarks(bone=name, side=side_of(name))
     c = _volume_centroid(surface) if surface.closed else (surface.areas @ surface.vertices) / surface.areas.sum()
     _, ax, sd = principal_axes(surface.vertices, surface.areas)
     res.landmarks["patella_centre"] = Landmark(c, (0.0005 ** 2) * np.eye(3))

@@ -22,6 +22,7 @@ import numpy as np
 
 from lowerlimb.errors import FitError
 from lowerlimb.geometry import orient, unit
+from lowerlimb.bones import side_of
 from personalize.fitting import fit_cylinder
 
 from .common import FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_TRUNCATED, Axis, BoneLandmarks, Landmark
@@ -107,7 +108,7 @@ def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None
     fibula_component : Surface or None
         The fibula found inside `surface`, if any.
     """
-    res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+    res = BoneLandmarks(bone=name, side=side_of(name))
     comps = split_components(surface)
     tib = comps[0]
     fib_comp = None
@@ -353,7 +354,7 @@ def detect_fibula(surface: Surface, name: str = "fibula_r", tibia: BoneLandmarks
     anatomical frame when available; alone, the fibula's ends are told apart
     by the malleolus' larger flare and the result is flagged low-confidence.
     """
-    res = BoneLandmarks(bone=name, side=name[-1] if name[-2:] in ("_r", "_l") else None)
+    res = BoneLandmarks(bone=name, side=side_of(name))
     fib = surface                                  # every piece of a fibula surface is fibula
     V = fib.vertices
     c, ax, _ = principal_axes(V, fib.areas)
