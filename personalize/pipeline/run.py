@@ -71,6 +71,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
     from ..outputs import replaced_dir
     from ..parameter_fusion import fuse_segment_lengths
     from .model import bone_meshes_lab
+    from .model_checks import check_model
     from .trials import chain_blend, solve_trials
 
     say = progress or (lambda m: None)
@@ -86,7 +87,12 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
     est = estimate_joints(inputs, bones.surfaces, bones.landmarks, joints, say, bones.dropped, skin=skin)
     gate_registrations(inputs, est)
     say("building the model")
-    pm, intercepts = build_model(inputs, est, joints, say)
+    try:
+        pm, intercepts = build_model(inputs, est, joints, say)
+    except InputError as exc:
+        if exc.source != "model":
+            raise
+        raise InputError(inputs.folder, f"model refused: {exc.problem}") from None   # name the subject, not "model"
     centres = ("hip", "knee", "ankle")
     lengths = fuse_segment_lengths({f"{j}_{s}": joints[f"{j}_{s}"].centre for s in inputs.sides for j in centres},
                                    {f"{j}_{s}": est.centres[s][j].motion for s in inputs.sides for j in centres},
@@ -95,11 +101,14 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
                                for b, r in bones.landmarks.bones.items() if r.flags]
     summary = SubjectSummary(inputs.folder.name, str(inputs.folder), list(inputs.sides), sorted(inputs.trials),
                              inputs.functional, bones.dropped, notes, pm.parameters.sources, est, lengths, intercepts)
+    meshes_lab = bone_meshes_lab(bones.surfaces, est, inputs.sides)
+    say("checking the model against the bones")
+    check_model(pm, meshes_lab, inputs.folder)
     truth = truth_in_static_lab(inputs)
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)
         say("writing meshes and model")
-        mesh_files = write_meshes(pm, bone_meshes_lab(bones.surfaces, est, inputs.sides), inside(stage, "meshes"))
+        mesh_files = write_meshes(pm, meshes_lab, inside(stage, "meshes"))
         save_model_json(pm, inside(stage, "model.json"), mesh_files)
         save_model_osim(pm, inside(stage, "model.osim"), mesh_files)
         ik, summary.ik = solve_trials(pm, inputs, stage, say)

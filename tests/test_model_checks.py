@@ -1,0 +1,95 @@
+"""`personalize.pipeline.model_checks`: a model with joints or markers away from its bones is never published."""
+from __future__ import annotations
+
+import shutil
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import personalize.pipeline.model_checks as mc
+from lowerlimb.errors import InputError
+from personalize.cli import main
+from personalize.evaluation.phantom_subject import write_phantom_subject
+
+
+@pytest.fixture(scope="module")
+def checked(tmp_path_factory):
+    """A short-trial phantom subject (3 mm labels) run through ``personalize run``; the model, meshes and checks."""
+    root = tmp_path_factory.mktemp("model_checks")
+    subj = write_phantom_subject(root / "subject", seed=5, voxel_mm=3.0)
+    seen = {}
+    orig = mc.check_model
+
+    def spy(pm, meshes_lab, source):
+        seen.update(pm=pm, meshes=meshes_lab, source=source)
+        seen["checks"] = orig(pm, meshes_lab, source)
+        return seen["checks"]
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(mc, "check_model", spy)
+    try:
+        code = main(["run", str(subj), "--out", str(root / "out"), "-q", "--no-report"])
+    finally:
+        mp.undo()
+    return subj, root / "out", code, seen
+
+
+def test_phantom_model_passes_with_margin(checked):
+    """Measured (seed 5, 3 mm labels): every joint centre inside one of its bones' boxes (0 mm; the knee centre
+    is 30 mm above the tibia's box, the subtalar 12-13 mm outside the talus's), bony-landmark markers at most
+    33 mm from their bone (PSIS; limit 60), device markers TIBM1/2 74-81 mm (limit 150)."""
+    _, out, code, seen = checked
+    assert code == 0 and (out / "model.osim").is_file()
+    checks = seen["checks"]
+    joints = [c for c in checks if c.kind == "joint"]
+    markers = [c for c in checks if c.kind == "marker"]
+    assert len(joints) == 10 and len(markers) >= 20
+    assert all(c.passed for c in checks)
+    assert max(c.distance for c in joints) < 0.005
+    bony = [c for c in markers if c.limit == mc.MARKER_SURFACE_MARGIN]
+    assert len(bony) >= 10 and max(c.distance for c in bony) < 0.045
+
+
+def test_joint_moved_away_is_refused(checked):
+    """The knee centre moved 0.5 m (as a diverged femur registration would): refused, naming the joint."""
+    _, _, _, seen = checked
+    pm = seen["pm"]
+    sides = dict(pm.parameters.sides)
+    sides["r"] = replace(sides["r"], knee=np.asarray(sides["r"].knee) + np.array([0.0, 0.5, 0.0]))
+    bad = SimpleNamespace(parameters=replace(pm.parameters, sides=sides), model=pm.model, body_frames=pm.body_frames)
+    with pytest.raises(InputError, match=r"knee_r centre .* is (4\d\d|50\d) mm \(limit 20 mm\)") as e:
+        mc.check_model(bad, seen["meshes"], seen["source"])
+    assert "\n" not in str(e.value) and str(seen["source"]) in str(e.value)
+
+
+@pytest.mark.parametrize("marker, shift", [("RTHI", (0.0, 0.5, 0.0)), ("RKNE", (0.0, 0.0, 0.5))])
+def test_femur_marker_moved_half_a_metre_is_refused(checked, tmp_path, capsys, marker, shift):
+    """A femur marker moved 0.5 m in the static trial: exit 2, one line naming the folder and the marker, no model.
+
+    RTHI (not a registration marker) is caught by the model check alone (measured: 503 mm, limit 150 mm);
+    RKNE moved 0.5 m laterally trips the registration's mirrored-sides test (static.c3d named), moved 0.5 m
+    upwards the model builder's degenerate-leg test (the subject folder named).
+    """
+    from kinematics.io.c3d import read_c3d, write_c3d
+    from kinematics.io.markers import MarkerTrial
+
+    subj, _, _, _ = checked
+    bad = tmp_path / "s"
+    shutil.copytree(subj, bad, ignore=shutil.ignore_patterns("truth"))
+    st = read_c3d(bad / "static.c3d")
+    pos = st.positions.copy()
+    pos[:, st.names.index(marker)] += np.array(shift)
+    write_c3d(bad / "static.c3d", MarkerTrial(st.names, pos, st.rate, st.time, "static.c3d"))
+    out = tmp_path / "o"
+    assert main(["run", str(bad), "--out", str(out), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    print(err)
+    assert len(err.splitlines()) == 1 and str(bad) in err
+    if marker == "RKNE":
+        # the Plug-in-Gait knee (from RKNE) drags the fused knee to within 5 cm of the hip: the builder refuses
+        assert "model refused: side r: hip, knee and ankle centres are closer than 5 cm" in err
+    else:
+        assert "model refused: marker RTHI from the femur_r bone surface is" in err
+    assert sorted(p.name for p in out.iterdir()) == ["report.html"]      # the refusal, nothing else
