@@ -19,11 +19,13 @@ import numpy as np
 
 from lowerlimb.atomic import staged_dir, write_text
 from lowerlimb.errors import InputError
+from lowerlimb.estimates import Gaussian
 
 from personalize.cohort import DEFAULT_JOB
 from personalize.cohort.jobs import resolve_job
 from personalize.evaluation.metrics import SOURCES
 from personalize.evaluation.phantom_set import GENERATED
+from personalize.evaluation.truth import true_static_centres
 
 #: the real anatomies of the realistic set: folder under the data root -> expert model
 REAL_ANATOMIES = {"ICL_MRI": "manual_ICL_MRI.osim", "LHDL_CT": "manual_LHDL_CT.osim"}
@@ -187,18 +189,6 @@ def realistic_validation_job(subject_dir: Path, out: Path, progress: Callable[[s
     return resolve_job(job)(Path(subject_dir), out, progress=progress)
 
 
-def _truth_centres_static_lab(subject_dir: Path) -> dict | None:
-    """True hip/knee/ankle centres in the static lab (truth/static_centres.trc, median over frames)."""
-    from kinematics.io.storage import read_trc
-
-    p = subject_dir / "truth" / "static_centres.trc"
-    if not p.is_file():
-        return None
-    cen = read_trc(p)
-    names = {"RHJC": "hip_r", "LHJC": "hip_l", "RKJC": "knee_r", "LKJC": "knee_l", "RAJC": "ankle_r", "LAJC": "ankle_l"}
-    return {names[n]: np.nanmedian(cen.marker(n), axis=0) for n in cen.names if n in names}
-
-
 def coverage_metrics(summary: dict, subject_dir: Path) -> dict:
     """Per joint and source: 1 when the truth lies inside the stated 95 % ellipsoid (chi-square 3 dof), else 0.
 
@@ -206,7 +196,7 @@ def coverage_metrics(summary: dict, subject_dir: Path) -> dict:
     compared with the true static centres.  Returns ``{"coverage.hip_r.fused": 1.0, ...}`` and the
     squared Mahalanobis distances ``mahalanobis2.<joint>.<source>``.
     """
-    truth = _truth_centres_static_lab(Path(subject_dir))
+    truth = true_static_centres(Path(subject_dir))
     est = summary.get("estimates") or {}
     out: dict[str, float] = {}
     if not truth:
@@ -223,9 +213,8 @@ def coverage_metrics(summary: dict, subject_dir: Path) -> dict:
                 mean, cov = e.get(src), e.get(f"{src}_cov")
             if mean is None or cov is None:
                 continue
-            r = np.asarray(mean, float) - t
             try:
-                d2 = float(r @ np.linalg.solve(np.asarray(cov, float), r))
+                d2 = Gaussian(mean, cov).mahalanobis2(t)
             except np.linalg.LinAlgError:
                 continue
             out[f"mahalanobis2.{joint}.{src}"] = d2

@@ -46,6 +46,22 @@ def read_truth(path: Path) -> dict | None:
 
 
 
+#: joint -> its centre's marker in a phantom's ``truth/static_centres.trc``
+STATIC_CENTRE_MARKERS = {"hip_r": "RHJC", "hip_l": "LHJC", "knee_r": "RKJC", "knee_l": "LKJC", "ankle_r": "RAJC",
+                         "ankle_l": "LAJC"}
+
+
+def true_static_centres(folder) -> dict | None:
+    """True hip/knee/ankle centres in the static lab (``truth/static_centres.trc``, median over frames), or None."""
+    from kinematics.io.storage import read_trc
+
+    path = Path(folder) / "truth" / "static_centres.trc"
+    if not path.is_file():
+        return None
+    cen = read_trc(path)
+    return {k: np.nanmedian(cen.marker(m), axis=0) for k, m in STATIC_CENTRE_MARKERS.items() if m in cen.names}
+
+
 def truth_in_static_lab(inputs) -> dict | None:
     """Phantom truth (joint centres, knee/ankle axes) in the static lab frame, or None.
 
@@ -53,20 +69,16 @@ def truth_in_static_lab(inputs) -> dict | None:
     knee and ankle joint origins onto the true static centres of
     ``truth/static_centres.trc`` (median over frames); its rms is returned.
     """
-    from kinematics.io.storage import read_trc
-
     tr = inputs.truth
-    path = inputs.folder / "truth" / "static_centres.trc"
-    if tr is None or not path.is_file() or "joints" not in tr:
+    centres = true_static_centres(inputs.folder) if tr is not None and "joints" in tr else None
+    if centres is None:
         return None
-    cen = read_trc(path)
-    names = {"hip_r": "RHJC", "hip_l": "LHJC", "knee_r": "RKJC", "knee_l": "LKJC", "ankle_r": "RAJC", "ankle_l": "LAJC"}
     J = tr["joints"]["joints"]
     P, Q = [], []
-    for k, m in names.items():
-        if k in J and m in cen.names:
+    for k, c in centres.items():
+        if k in J:
             P.append(J[k]["origin"])
-            Q.append(np.nanmedian(cen.marker(m), axis=0))
+            Q.append(c)
     if len(P) < 3:
         return None
     P, Q = np.array(P, float), np.array(Q, float)
