@@ -50,25 +50,14 @@ SHANK_MARKERS = ("TIB", "ANK", "ANKM", "TIBM1", "TIBM2", "TIBM3", "TTB", "HFB")
 _ALIASES = {"KNEM": "MFC", "ANKM": "MMA"}
 
 
-def _static_reference(static: MarkerTrial, names) -> tuple[list[str], np.ndarray]:
-    use, ref = [], []
-    for n in names:
-        if n in static.names:
-            x = static.marker(n)
-            x = x[np.all(np.isfinite(x), axis=1)]
-            if len(x):
-                use.append(n)
-                ref.append(np.median(x, axis=0))
-    return use, np.array(ref)
-
-
 def cluster_pose(static: MarkerTrial, trials, names):
     """Cluster poses over the concatenated trials; the cluster frame is the static lab frame."""
     from kinematics.algorithms.segments import rigid_pose
 
-    names0, ref0 = _static_reference(static, names)
-    ref_of = dict(zip(names0, ref0))
-    use = [n for n in names0 if all(n in t.names for t in trials)]
+    from ..registration import static_marker_positions
+
+    ref_of = {n: g.mean for n, g in static_marker_positions(static, names).items()}
+    use = [n for n in ref_of if all(n in t.names for t in trials)]
     if len(use) < 3:
         return None
     ref = np.array([ref_of[n] for n in use])
