@@ -400,7 +400,7 @@ def test_damped_fit_cannot_diverge():
     Measured (seed 2, 6 landmarks, marker 0 moved 0.5 m): from the weighted Kabsch start (χ² = 25 439)
     undamped Gauss-Newton oscillates (χ² 1.7e7, 1.6e9, 4.2e4, ... every 5 iterations) and ends after 50
     at χ² = 4.2e11 with a residual of 867 m, as `registration._fit` did on a real subject.  The damped
-    fit only accepts decreasing steps: χ² = 8038, largest residual 0.52 m (the moved marker).  With the
+    fit only accepts decreasing steps: χ² = 8223, largest residual 0.52 m (the moved marker).  With the
     outlier rejected by `register_landmarks` (d = 115 sd) the problem is well posed and the fit reaches the
     same optimum as Gauss-Newton on the five inliers (χ² = 5.1597 on 9 dof; R within 1e-9, t within 1e-10 m).
     """
