@@ -103,7 +103,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
                              inputs.functional, bones.dropped, notes, pm.parameters.sources, est, lengths, intercepts)
     meshes_lab = bone_meshes_lab(bones.surfaces, est, inputs.sides)
     say("checking the model against the bones")
-    check_model(pm, meshes_lab, inputs.folder)
+    check_model(pm, meshes_lab, inputs.folder, skin)
     truth = truth_in_static_lab(inputs)
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)
