@@ -33,6 +33,7 @@ import trimesh
 
 from lowerlimb.errors import InputError
 from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
+from lowerlimb.topology import JOINT_BONES
 
 from ..marker_registration import SEGMENT_MARKERS
 
@@ -55,10 +56,7 @@ SKIN_SD_FACTOR = 3.0
 #: refuses any registration that diverged by more than a bone's width.
 OFF_BONE_MARKER_SURFACE_MARGIN = 0.150
 
-#: joint -> the bones whose boxes must hold its centre (sided names take the side suffix); a tibia includes
-#: its fibula (one body, and the lateral malleolus is the fibula's)
-_JOINT_BONES = {"hip": ("pelvis", "femur"), "knee": ("femur", "tibia"), "ankle": ("tibia", "talus"),
-                "subtalar": ("talus", "calcn"), "mtp": ("calcn", "toes")}
+#: a tibia's box includes its fibula (one body, and the lateral malleolus is the fibula's)
 _BONE_PARTS = {"tibia": ("tibia", "fibula")}
 #: marker names on bony landmarks (sided ones with their side letter)
 _BONY_MARKERS = set(SEGMENT_MARKERS["pelvis"]) | {s + m for k, v in SEGMENT_MARKERS.items() if k != "pelvis"
@@ -103,7 +101,7 @@ def model_checks(pm, meshes_lab: dict, skin: dict | None = None) -> list[ModelCh
     """
     out: list[ModelCheck] = []
     for s, sp in sorted(pm.parameters.sides.items()):
-        for joint, bones in _JOINT_BONES.items():
+        for joint, bones in JOINT_BONES.items():   # the bones whose boxes must hold the centre
             c = np.asarray(getattr(sp, joint), float)
             boxes = {}
             for bone in bones:
