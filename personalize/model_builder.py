@@ -130,6 +130,8 @@ class SubjectParameters:
     mass : kg; height : m
     sources : dict parameter -> provenance text (written to model.json)
     name : model name
+    marker_bodies : dict marker name -> body it rides on (from the marker set); None: Plug-in-Gait names
+        (`MARKER_BODIES`)
     """
 
     pelvis_origin: np.ndarray
@@ -140,6 +142,7 @@ class SubjectParameters:
     height: float
     sources: dict = field(default_factory=dict)
     name: str = "personalised"
+    marker_bodies: dict | None = None
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,9 @@ class SubjectInputs:
     functional : name of the hip calibration trial or None
     subject : kinematics.gait.subject.SubjectMeasurements
     truth : dict (truth.json) or None; sides : tuple of sides with both bones and markers
+    marker_set : `kinematics.io.marker_sets.MarkerSet` the trials' labels follow (None: Plug-in-Gait names)
+    lab : `kinematics.gait.lab_frame.LabFrame` the trials were recorded in (None: already the internal frame);
+        every trial above is expressed in the internal frame (X forward, Y left, Z up, m)
     """
 
     folder: Path
@@ -46,6 +49,8 @@ class SubjectInputs:
     subject: object
     truth: dict | None
     sides: tuple
+    marker_set: object = None
+    lab: object = None
 
 
 def _pelvis_distances(trial: MarkerTrial) -> np.ndarray:
