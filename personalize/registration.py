@@ -92,6 +92,8 @@ class Registration:
     chi2, dof, p_value : goodness of fit against the declared noise
     inflation : factor applied to `cov` (1 unless the χ² test failed)
     segment : registration segment name; notes : human-readable remarks
+    tissue_scale, tissue_scale_log_sd : soft-tissue scale k estimated with the pose and the sd of ln k
+        (None: not estimated); tissue : marker -> (thickness, sd) m of the estimated soft tissue
     """
 
     R: np.ndarray
@@ -108,6 +110,9 @@ class Registration:
     inflation: float = 1.0
     segment: str | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
+    tissue_scale: float | None = None
+    tissue_scale_log_sd: float = 0.0
+    tissue: dict = field(default_factory=dict)
 
     # ------------------------------------------------------------------ summaries
     @property
@@ -211,6 +216,9 @@ class Registration:
             "chi2": self.chi2, "dof": self.dof, "p_value": self.p_value, "inflation": self.inflation,
             "rotation_sd_deg": self.rotation_sd_deg.tolist(), "translation_sd": self.translation_sd.tolist(),
             "notes": list(self.notes),
+            **({"tissue_scale": self.tissue_scale, "tissue_scale_log_sd": self.tissue_scale_log_sd,
+                "tissue": {k: {"thickness": v[0], "sd": v[1]} for k, v in self.tissue.items()}}
+               if self.tissue_scale is not None else {}),
         }
 
 
@@ -310,6 +318,38 @@ def _step(R, t, c, dx):
     return dR @ R, c + dR @ (t - c) + dx[3:]
 
 
+def _levenberg_marquardt(state, linearise, step, trial_chi2, max_iter: int):
+    """The damped loop of `_fit` over any parameter `state`: returns the final state and its linearisation.
+
+    ``linearise(state) -> (r, Σ, J, H, g, χ²)``, ``step(state, dx) -> state``, ``trial_chi2(state, W) -> χ²``
+    (Σ held at the current estimate).  See `_fit` for the rules.
+    """
+    r, S, J, H, g, chi2 = linearise(state)
+    W = np.linalg.inv(S)
+    lam = LM_LAMBDA0 * float(np.max(np.diag(H)))
+    for _ in range(max_iter):
+        D = np.diag(np.diag(H))
+        dx = np.linalg.lstsq(H + lam * D, g, rcond=None)[0]
+        state1 = step(state, dx)
+        chi2_1 = trial_chi2(state1, W)
+        small = np.max(np.abs(dx)) < LM_XTOL
+        if chi2_1 <= chi2:
+            decrease = chi2 - chi2_1
+            state = state1
+            r, S, J, H, g, chi2 = linearise(state)
+            W = np.linalg.inv(S)
+            lam /= LM_FACTOR
+            if small or (decrease <= LM_RTOL * max(chi2, 1e-300) and np.max(np.abs(dx)) < LM_XTOL_RTOL):
+                break
+        else:
+            if small:
+                break
+            lam *= LM_FACTOR
+            if lam > LM_LAMBDA_MAX * float(np.max(np.diag(H))):
+                break
+    return state, (r, S, J, H, g, chi2)
+
+
 def _fit(Q, M, Cq, Cm, *, max_iter: int = 100, R0=None, t0=None):
     """Levenberg-Marquardt on χ² = Σ r_kᵀ Σ_k⁻¹ r_k; returns R, t, c, H (information), r, Σ, J.
 
@@ -334,40 +374,117 @@ def _fit(Q, M, Cq, Cm, *, max_iter: int = 100, R0=None, t0=None):
     else:
         R, t = np.asarray(R0, float), np.asarray(t0, float)
     c = (w0 @ M) / w0.sum()
-    r, S, J, H, g, chi2 = _linearise(Q, M, Cq, Cm, R, t, c)
-    W = np.linalg.inv(S)
-    lam = LM_LAMBDA0 * float(np.max(np.diag(H)))
-    for _ in range(max_iter):
-        D = np.diag(np.diag(H))
-        dx = np.linalg.lstsq(H + lam * D, g, rcond=None)[0]
-        R1, t1 = _step(R, t, c, dx)
-        r1 = M - (Q @ R1.T + t1)
-        chi2_1 = float(np.einsum("ka,kab,kb->", r1, W, r1))     # Σ_k held at the current rotation
-        small = np.max(np.abs(dx)) < LM_XTOL
-        if chi2_1 <= chi2:
-            decrease = chi2 - chi2_1
-            R, t = R1, t1
-            r, S, J, H, g, chi2 = _linearise(Q, M, Cq, Cm, R, t, c)
-            W = np.linalg.inv(S)
-            lam /= LM_FACTOR
-            if small or (decrease <= LM_RTOL * max(chi2, 1e-300) and np.max(np.abs(dx)) < LM_XTOL_RTOL):
-                break
-        else:
-            if small:
-                break
-            lam *= LM_FACTOR
-            if lam > LM_LAMBDA_MAX * float(np.max(np.diag(H))):
-                break
+
+    def trial(st, W):
+        r1 = M - (Q @ st[0].T + st[1])
+        return float(np.einsum("ka,kab,kb->", r1, W, r1))
+
+    (R, t), (r, S, J, H, _, _) = _levenberg_marquardt(
+        (R, t), lambda st: _linearise(Q, M, Cq, Cm, st[0], st[1], c), lambda st, dx: _step(st[0], st[1], c, dx),
+        trial, max_iter)
     return R, t, c, H, r, S, J
+
+
+@dataclass(frozen=True)
+class _Tissue:
+    """Offsets of skin markers whose soft tissue is estimated with one scale k = exp(u) (`register_landmarks`).
+
+    Point k sits at q_k(u) = p_k + (f_k + e^u μ_k) n_k: f_k the fixed part (marker radius, tissue not
+    estimated), μ_k the prior tissue scaled (0: not scaled); its variance along n_k is s_k² + (e^u μ_k σ_s)²
+    and across n_k (d_k(u) σ_n,k)²; ln k ~ N(u₀, σ_u²).
+    """
+
+    P: np.ndarray
+    N: np.ndarray
+    fixed: np.ndarray
+    mu: np.ndarray
+    sd_fixed: np.ndarray
+    site_log_sd: float
+    normal_sd: np.ndarray
+    C0: np.ndarray
+    u0: float
+    su: float
+
+    def take(self, idx) -> "_Tissue":
+        return _Tissue(self.P[idx], self.N[idx], self.fixed[idx], self.mu[idx], self.sd_fixed[idx], self.site_log_sd,
+                       self.normal_sd[idx], self.C0[idx], self.u0, self.su)
+
+    def points(self, u: float) -> np.ndarray:
+        return self.P + (self.fixed + np.exp(u) * self.mu)[:, None] * self.N
+
+    def covs(self, u: float) -> np.ndarray:
+        k = np.exp(u)
+        d = self.fixed + k * self.mu
+        sd2 = self.sd_fixed ** 2 + (k * self.mu * self.site_log_sd) ** 2
+        nn = np.einsum("ki,kj->kij", self.N, self.N)
+        return self.C0 + sd2[:, None, None] * nn + (d * self.normal_sd)[:, None, None] ** 2 * (np.eye(3) - nn) \
+            + 1e-12 * np.eye(3)
+
+
+def _linearise_tissue(tis: _Tissue, M, Cm, R, t, u, c):
+    """`_linearise` of the 7 parameters (ω, δ, u = ln k) with the prior on u as one more residual."""
+    Q, Cq = tis.points(u), tis.covs(u)
+    S = np.einsum("ij,kjl,ml->kim", R, Cq, R) + Cm
+    W = np.linalg.inv(S)
+    y = Q @ R.T + t
+    r = M - y
+    J = np.zeros((len(Q), 3, 7))
+    J[:, :, :3] = -skew(y - c)
+    J[:, :, 3:6] = np.eye(3)
+    J[:, :, 6] = (np.exp(u) * tis.mu)[:, None] * (tis.N @ R.T)
+    H = np.einsum("kai,kab,kbj->ij", J, W, J)
+    g = np.einsum("kai,kab,kb->i", J, W, r)
+    H[6, 6] += 1.0 / tis.su ** 2
+    g[6] += (tis.u0 - u) / tis.su ** 2
+    chi2 = float(np.einsum("ka,kab,kb->", r, W, r)) + ((u - tis.u0) / tis.su) ** 2
+    return r, S, J, H, g, chi2
+
+
+def _fit_tissue(tis: _Tissue, M, Cm, *, max_iter: int = 100):
+    """`_fit` with the tissue scale u = ln k as a seventh parameter: returns R, t, u, c, H (7x7), r, Σ, J.
+
+    Minimises χ² = Σ r_kᵀ Σ_k(u)⁻¹ r_k + ((u - u₀)/σ_u)², r_k = m_k - (R q_k(u) + t), by the same damped
+    loop (Σ held at the current estimate within a step); started at u₀ from weighted Kabsch/Horn.
+    """
+    Q0, C0 = tis.points(tis.u0), tis.covs(tis.u0)
+    w0 = 1.0 / np.trace(C0 + Cm, axis1=1, axis2=2)
+    R, t = kabsch(Q0, M, w0)
+    c = (w0 @ M) / w0.sum()
+
+    def step(st, dx):
+        R1, t1 = _step(st[0], st[1], c, dx[:6])
+        return R1, t1, st[2] + float(dx[6])
+
+    def trial(st, W):
+        r1 = M - (tis.points(st[2]) @ st[0].T + st[1])
+        return float(np.einsum("ka,kab,kb->", r1, W, r1)) + ((st[2] - tis.u0) / tis.su) ** 2
+
+    (R, t, u), (r, S, J, H, _, _) = _levenberg_marquardt(
+        (R, t, tis.u0), lambda st: _linearise_tissue(tis, M, Cm, st[0], st[1], st[2], c), step, trial, max_iter)
+    return R, t, u, c, H, r, S, J
 
 
 def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER_PLACEMENT_SD, normals=None,
                        offset=SKIN_THICKNESS + DEFAULT_MARKER_RADIUS, *, offset_sd: float = SKIN_THICKNESS_SD,
                        normal_sd_deg: float | np.ndarray = SURFACE_NORMAL_SD_DEG, names=None,
-                       k_outlier: float = 3.0, min_points: int = 3, segment: str | None = None) -> Registration:
+                       k_outlier: float = 3.0, min_points: int = 3, segment: str | None = None,
+                       tissue=None, tissue_prior=None) -> Registration:
     """Weighted rigid registration of MRI landmarks to marker centres, with outlier rejection.
 
     See the module docstring for the model and the minimised χ².
+
+    Soft tissue estimated with the pose (``tissue`` and ``tissue_prior`` given, `normals` needed): the
+    tissue of point k is t_k = k μ_k (μ_k = ``tissue[k]``, the prior's mean, included in ``offset[k]``;
+    0 for points whose offset is known), one scale k per call with the prior
+    ln k ~ N(ln k₀, σ_k²) (`kinematics.gait.soft_tissue.TissueScalePrior`): the marker centres are
+
+        m_k = R (p_k + (f_k + k μ_k) n_k) + t + ε_k,   f_k = offset_k - μ_k,
+
+    and (ω, δ, ln k) minimise χ² + ((ln k - ln k₀)/σ_k)², the sd of t_k along n_k being k μ_k σ_site
+    (the site's own departure from the scaled table) instead of ``offset_sd``.  The inter-marker
+    distances on the skin against those on the bone (ASIS to PSIS depth) identify k.  The 6x6 ``cov``
+    is the pose block of the 7x7 inverse information (k's uncertainty included); ``tissue_scale``,
+    ``tissue_scale_log_sd`` and ``tissue`` (name -> (t_k, sd) m) report the estimate.
 
     Parameters
     ----------
@@ -384,6 +501,8 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
     names : K names (for reporting); default "0", "1", ...
     k_outlier : rejection threshold in sd (converted to the χ²₃ quantile)
     min_points : never go below this many correspondences (≥ 3)
+    tissue : (K,) m prior tissue means to scale (0 where the offset is known), or None
+    tissue_prior : `kinematics.gait.soft_tissue.TissueScalePrior` (median, log_sd, site_log_sd), or None
 
     Returns
     -------
@@ -407,12 +526,20 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
     Cq = np.zeros((K, 3, 3)) if mri_cov is None else _as_covs(mri_cov, K, src, 0.0)
     Cm = _as_covs(marker_sd, K, src, MARKER_PLACEMENT_SD)
     Q = P.copy()
+    tis = None
     if normals is not None:
         N = np.asarray(normals, float).reshape(K, 3)
         N = N / np.linalg.norm(N, axis=1, keepdims=True)
         d = np.broadcast_to(np.asarray(offset, float), (K,))
         ds = np.broadcast_to(np.asarray(offset_sd, float), (K,))
         ns = np.radians(np.broadcast_to(np.asarray(normal_sd_deg, float), (K,)))
+        if tissue is not None and tissue_prior is not None:
+            mu = np.broadcast_to(np.asarray(tissue, float), (K,)).copy()
+            if np.any(mu < 0) or not np.all(np.isfinite(mu)):
+                raise InputError(src, "prior tissue means must be finite and >= 0")
+            if np.any(mu > 0):
+                tis = _Tissue(P, N, d - mu, mu, np.where(mu > 0, 0.0, ds), float(tissue_prior.site_log_sd), ns,
+                              Cq.copy(), float(np.log(tissue_prior.median)), float(tissue_prior.log_sd))
         Q = P + d[:, None] * N
         nn = np.einsum("ki,kj->kij", N, N)
         Cq = Cq + ds[:, None, None] ** 2 * nn + (d * ns)[:, None, None] ** 2 * (np.eye(3) - nn)
@@ -433,10 +560,18 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
             sp = np.linalg.svd(Q[others] - Q[others].mean(axis=0), compute_uv=False)
             if sp[1] < 1e-3:
                 continue
-            R, t, c, H, _, _, _ = _fit(Q[others], M[others], Cq[others], Cm[others])
-            y = R @ Q[k] + t
-            Jk = np.hstack([-skew(y - c), np.eye(3)])
-            S = R @ Cq[k] @ R.T + Cm[k] + Jk @ np.linalg.inv(H) @ Jk.T
+            if tis is None:
+                R, t, c, H, _, _, _ = _fit(Q[others], M[others], Cq[others], Cm[others])
+                y = R @ Q[k] + t
+                Jk = np.hstack([-skew(y - c), np.eye(3)])
+                Ck = Cq[k]
+            else:
+                R, t, u, c, H, _, _, _ = _fit_tissue(tis.take(others), M[others], Cm[others])
+                one = tis.take([k])
+                y = R @ one.points(u)[0] + t
+                Jk = np.hstack([-skew(y - c), np.eye(3), (np.exp(u) * one.mu[0] * (R @ one.N[0]))[:, None]])
+                Ck = one.covs(u)[0]
+            S = R @ Ck @ R.T + Cm[k] + Jk @ np.linalg.inv(H) @ Jk.T
             r = M[k] - y
             d2[j] = r @ np.linalg.solve(S, r)
         j = int(np.argmax(d2))
@@ -445,11 +580,27 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
         rejected[names[keep[j]]] = float(np.sqrt(d2[j]))
         keep.pop(j)
 
-    R, t, c, H, r, S, J = _fit(Q[keep], M[keep], Cq[keep], Cm[keep])
+    scale, scale_sd, tissue_out = None, 0.0, {}
+    if tis is None:
+        R, t, c, H, r, S, J = _fit(Q[keep], M[keep], Cq[keep], Cm[keep])
+        prior_chi2 = 0.0
+    else:
+        sub = tis.take(keep)
+        R, t, u, c, H7, r, S, J = _fit_tissue(sub, M[keep], Cm[keep])
+        if np.linalg.cond(H7) > 1e14:
+            raise InputError(src, "registration is degenerate: the landmarks do not fix all six degrees of freedom")
+        C7 = np.linalg.inv(H7)
+        scale, scale_sd = float(np.exp(u)), float(np.sqrt(C7[6, 6]))
+        H = np.linalg.inv(C7[:6, :6])                  # information of the pose with k marginalised
+        prior_chi2 = ((u - sub.u0) / sub.su) ** 2
+        for i in range(K):
+            if tis.mu[i] > 0:
+                ti = scale * tis.mu[i]
+                tissue_out[names[i]] = (ti, float(ti * np.hypot(scale_sd, tis.site_log_sd)))
     if np.linalg.cond(H) > 1e14:
         raise InputError(src, "registration is degenerate: the landmarks do not fix all six degrees of freedom")
     maha2 = np.einsum("ka,kab,kb->k", r, np.linalg.inv(S), r)
-    chi2 = float(maha2.sum())
+    chi2 = float(maha2.sum()) + float(prior_chi2)
     dof = 3 * len(keep) - 6
     p = float(stats.chi2.sf(chi2, dof)) if dof > 0 else 1.0
     cov = np.linalg.inv(H)
@@ -463,8 +614,11 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
         notes.append("rejected as outliers: " + ", ".join(f"{n} ({v:.1f} sd)" for n, v in rejected.items()))
     if len(keep) == 3:
         notes.append("only 3 correspondences: outliers cannot be detected")
+    if scale is not None:
+        notes.append(f"soft tissue estimated: {scale:.2f} x the site table (log sd {scale_sd:.2f}; prior "
+                     f"{tissue_prior.median:.2f}, log sd {tissue_prior.log_sd:.2f}, {tissue_prior.basis})")
     return Registration(R, t, 0.5 * (cov + cov.T), c, tuple(names[i] for i in keep), rejected, r,
-                        np.sqrt(maha2), chi2, dof, p, inflation, segment, tuple(notes))
+                        np.sqrt(maha2), chi2, dof, p, inflation, segment, tuple(notes), scale, scale_sd, tissue_out)
 
 
 # --------------------------------------------------------------------------- per segment
