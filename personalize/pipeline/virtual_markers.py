@@ -1,0 +1,148 @@
+r"""What closes a leg segment's rotation about its long axis when it shows only its lateral landmark marker.
+
+A femur registered from the hip centre and one knee marker (Plug-in-Gait's
+KNE) is free to turn about the line through them, and a shank registered from
+the knee centre and one ankle marker (ANK) likewise; Plug-in-Gait closes that
+freedom with the thigh and shank wands, whose placement error turns its knee
+and ankle centres by tens of degrees (realistic phantoms on real bones: knee
+and ankle centres 47 mm off, which the registrations then inherited).
+
+Femur: a virtual medial epicondyle marker built from the MRI's epicondylar
+width and a population prior on the knee axis in standing (parallel to the
+pelvis's medio-lateral axis, orthogonal to the thigh), that prior's spread
+as its covariance:
+
+.. math::
+
+    v = m_{lat} + L\,\hat n, \qquad L = w_{MRI} + t_{lat} + t_{med} + 2 r, \qquad
+    \Sigma_v = \Sigma_{lat} + R\,\operatorname{diag}(\sigma_w^2,\;
+               (L \sin\sigma_\theta)^2,\; (L \sin\sigma_\phi)^2)\,R^T
+
+with :math:`m_{lat}` the knee marker, :math:`w_{MRI}` the distance between
+the epicondyles along the MRI knee axis, :math:`t` the soft-tissue priors,
+:math:`r` the marker radius, :math:`R = [\hat n, \hat a, \hat z]` (medial,
+anterior, along the thigh), :math:`\sigma_\theta` =
+`STANDING_HIP_ROTATION_SD_DEG`, :math:`\sigma_\phi` = `AXIS_TILT_SD_DEG`.
+
+Shank: two points of the MRI knee flexion axis, :math:`p_\pm = c \pm
+\ell\,\hat u` (scanner frame), are points of both bones that knee flexion
+does not move, so the femur registration carries them into the lab,
+
+.. math::
+
+    y_\pm = R_f\,p_\pm + t_f, \qquad
+    \Sigma_\pm = J_\pm \Sigma_f J_\pm^T + (\ell \sin\sigma_k)^2 I,
+
+and they are paired with the same scanner points on the shank; only the
+knee's secondary rotations between the scanner and the standing pose move
+them, with sd :math:`\sigma_k` = `KNEE_STANDING_ROTATION_SD_DEG`.  The
+tibia's own torsion then comes from the MRI, not from a wand.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from lowerlimb.estimates import Gaussian
+from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
+
+__all__ = ["STANDING_HIP_ROTATION_SD_DEG", "AXIS_TILT_SD_DEG", "KNEE_STANDING_ROTATION_SD_DEG", "KNEE_AXIS_HALF_LENGTH",
+           "WIDTH_SD", "virtual_medial_knee", "knee_axis_pairs"]
+
+#: deg, sd of the standing hip rotation (knee flexion axis vs the pelvis's medio-lateral axis about the thigh).
+#: An assumption: quiet-standing hip rotation is within about +-10 deg in healthy adults; the value is not
+#: tuned on any data set
+STANDING_HIP_ROTATION_SD_DEG = 10.0
+#: deg, sd of the knee or transmalleolar axis out of the transverse plane in standing (assumed)
+AXIS_TILT_SD_DEG = 5.0
+#: deg, sd of the knee's ab/adduction and axial rotation between the scanner pose and standing (both knees near
+#: extension, where the screw-home mechanism locks the axial rotation; assumed)
+KNEE_STANDING_ROTATION_SD_DEG = 5.0
+#: m, half the distance between the two knee-axis points (about half an epicondylar width)
+KNEE_AXIS_HALF_LENGTH = 0.04
+#: m, sd of the lateral-to-medial marker distance (two tissue priors and the landmarks)
+WIDTH_SD = 0.004
+
+
+
+def _unit(v: np.ndarray) -> np.ndarray | None:
+    n = float(np.linalg.norm(v))
+    return None if not np.isfinite(n) or n < 1e-9 else v / n
+
+
+def _tissue(marker: str) -> float:
+    from ..registration import skin_prior
+
+    return float(skin_prior(marker)[0])
+
+
+def _virtual(lateral: Gaussian, medial: np.ndarray, along: np.ndarray, L: float, rot_sd_deg: float) -> Gaussian:
+    """v = lateral + L n with the covariance of the module docstring (n medial, `along` the segment's axis)."""
+    z = _unit(along - np.dot(along, medial) * medial)
+    a = np.cross(z, medial)
+    R = np.column_stack([medial, a, z])
+    D = np.diag([WIDTH_SD**2, (L * np.sin(np.radians(rot_sd_deg)))**2, (L * np.sin(np.radians(AXIS_TILT_SD_DEG)))**2])
+    return Gaussian(lateral.mean + L * medial, lateral.cov + R @ D @ R.T)
+
+
+def _width(bones: dict, bone_names, lat: str, med: str, axis) -> float | None:
+    """Distance (m) between the lateral and medial landmarks along the MRI joint axis `axis` (else straight)."""
+    found = {}
+    for b in bone_names:
+        for n in (lat, med):
+            if b in bones and n in bones[b].landmarks:
+                found[n] = bones[b].landmarks[n].position
+    if len(found) < 2:
+        return None
+    d = np.asarray(found[med], float) - np.asarray(found[lat], float)
+    if axis is not None:
+        u = _unit(np.asarray(axis, float))
+        if u is not None:
+            return float(abs(np.dot(d, u)))
+    return float(np.linalg.norm(d))
+
+
+def virtual_medial_knee(static: dict, bones: dict, side: str, hip: np.ndarray, pelvis_axes: np.ndarray,
+                        knee_axis_mri=None) -> Gaussian | None:
+    """Virtual medial epicondyle marker (``RMFC``/``LMFC``) from the knee marker and the pelvis axes.
+
+    Parameters
+    ----------
+    static : marker -> `Gaussian` static position (lab, m); needs ``<S>KNE``
+    bones : bone -> `personalize.landmarks.BoneLandmarks` (scanner, m); needs ``<S>KNE``, ``<S>MFC`` on the femur
+    hip : (3,) the hip centre in the lab (m); pelvis_axes : (3, 3) columns x anterior, y left, z up
+    knee_axis_mri : (3,) the MRI knee axis (scanner) along which the epicondylar width is measured
+
+    Returns
+    -------
+    `Gaussian` (3,) m, (3, 3) m², or None when a marker or landmark is missing.
+    """
+    S = side.upper()
+    lat = static.get(f"{S}KNE")
+    w = _width(bones, [f"femur_{side}"], f"{S}KNE", f"{S}MFC", knee_axis_mri)
+    if lat is None or w is None:
+        return None
+    thigh = _unit(np.asarray(hip, float) - lat.mean)
+    y_left = np.asarray(pelvis_axes, float)[:, 1]
+    n = y_left if side == "r" else -y_left
+    n = _unit(n - np.dot(n, thigh) * thigh) if thigh is not None else None
+    if n is None:
+        return None
+    L = w + _tissue(f"{S}KNE") + _tissue(f"{S}MFC") + 2.0 * DEFAULT_MARKER_RADIUS
+    return _virtual(lat, n, thigh, L, STANDING_HIP_ROTATION_SD_DEG)
+
+
+def knee_axis_pairs(reg_femur, knee_centre, knee_axis, side: str) -> list:
+    """The two knee-axis points of the module docstring as (name, scanner `Gaussian`, lab `Gaussian`) pairs.
+
+    reg_femur : the femur's `personalize.registration.Registration`; knee_centre, knee_axis : (3,) the MRI knee
+    centre and flexion axis (scanner, m).  Pass them as `register_with_centre`'s ``extra``.
+    """
+    u = _unit(np.asarray(knee_axis, float))
+    c = np.asarray(knee_centre, float)
+    out = []
+    for sign, tag in ((1.0, "a"), (-1.0, "b")):
+        p = c + sign * KNEE_AXIS_HALF_LENGTH * u
+        y, C = reg_femur.transfer_point(p)
+        C = C + (KNEE_AXIS_HALF_LENGTH * np.sin(np.radians(KNEE_STANDING_ROTATION_SD_DEG)))**2 * np.eye(3)
+        out.append((f"knee_axis_{side}_{tag}", Gaussian(p, 1e-8 * np.eye(3)), Gaussian(y, C)))
+    return out
