@@ -100,6 +100,7 @@ class Correspondences:
     offset: list = field(default_factory=list)
     offset_sd: list = field(default_factory=list)
     normal_sd_deg: list = field(default_factory=list)
+    tissue: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -116,19 +117,26 @@ class Correspondences:
         self.offset.append(float(offset))
         self.offset_sd.append(float(offset_sd))
         self.normal_sd_deg.append(float(normal_sd_deg))
+        self.tissue.append(0.0)
 
     def add_marker(self, name: str, mri: Gaussian, lab: Gaussian, normal, *, skin_thickness=None, skin_sd=None,
                    marker_radius: float = DEFAULT_MARKER_RADIUS, normal_sd_deg: float = SURFACE_NORMAL_SD_DEG) -> None:
-        """A skin marker over a scanner point: offset = soft tissue (`skin_thickness`, else the site prior) + radius."""
+        """A skin marker over a scanner point: offset = soft tissue (`skin_thickness`, else the site prior) + radius.
+
+        A prior tissue is recorded in ``tissue`` (0 for a given one): `register` can estimate its scale."""
         self.add(name, mri, lab, normal, _per_marker(skin_thickness, name, 0) + marker_radius,
                  _per_marker(skin_sd, name, 1), normal_sd_deg)
+        given = skin_thickness.get(name) if isinstance(skin_thickness, dict) else skin_thickness
+        self.tissue[-1] = _per_marker(None, name, 0) if given is None else 0.0
 
-    def register(self, segment: str | None = None, *, k_outlier: float = 3.0) -> Registration:
-        """`register_landmarks` of these pairs."""
+    def register(self, segment: str | None = None, *, k_outlier: float = 3.0, tissue_prior=None) -> Registration:
+        """`register_landmarks` of these pairs; with `tissue_prior` (`kinematics.gait.soft_tissue.TissueScalePrior`)
+        the scale of the prior tissues is estimated with the pose."""
         return register_landmarks(np.array(self.mri), np.array(self.lab), np.array(self.mri_cov), np.array(self.lab_cov),
                                   np.array(self.normals), np.array(self.offset), offset_sd=np.array(self.offset_sd),
                                   normal_sd_deg=np.array(self.normal_sd_deg), names=self.names, k_outlier=k_outlier,
-                                  segment=segment)
+                                  segment=segment, tissue=np.array(self.tissue) if tissue_prior is not None else None,
+                                  tissue_prior=tissue_prior)
 
 
 def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marker_names, static: Mapping[str, Gaussian],
@@ -254,7 +262,7 @@ def register_segments(landmarks: LandmarkSet, static_trial, *, sides=("r", "l"),
                       surfaces: dict | None = None, skin_thickness: float | dict | None = None,
                       skin_sd: float | dict | None = None, marker_radius: float = DEFAULT_MARKER_RADIUS,
                       placement_sd: float = MARKER_PLACEMENT_SD, k_outlier: float = 3.0,
-                      landmarks_source: str = "landmarks.json") -> SegmentRegistrations:
+                      landmarks_source: str = "landmarks.json", tissue_prior=None) -> SegmentRegistrations:
     """Register every segment's MRI landmarks to the static-trial markers.
 
     Segments: ``pelvis`` (RASI, LASI, RPSI, LPSI, SYMP), ``femur_s`` (TRO, KNE,
@@ -280,6 +288,8 @@ def register_segments(landmarks: LandmarkSet, static_trial, *, sides=("r", "l"),
         The pipeline passes the tissue MEASURED in the MRI's body/skin label where it has one
         (`personalize.skin.measure_pelvis_skin`) and lets the prior fill the rest
     placement_sd : m, marker placement sd added to the static scatter
+    tissue_prior : `kinematics.gait.soft_tissue.TissueScalePrior` or None: the scale of the prior
+        tissues is then estimated per segment with its pose (`register_landmarks`)
 
     Returns
     -------
@@ -336,5 +346,5 @@ def register_segments(landmarks: LandmarkSet, static_trial, *, sides=("r", "l"),
                 out.skipped[seg_name] = problem
                 continue
             raise InputError(tsrc if len(mri) >= 3 else landmarks_source, problem)
-        out[seg_name] = corr.register(seg_name, k_outlier=k_outlier)
+        out[seg_name] = corr.register(seg_name, k_outlier=k_outlier, tissue_prior=tissue_prior)
     return out

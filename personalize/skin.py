@@ -43,7 +43,7 @@ from scipy import ndimage
 
 from lowerlimb.errors import InputError
 
-__all__ = ["SkinThickness", "measure_skin_thickness", "measure_pelvis_skin", "PELVIS_SKIN_MARKERS",
+__all__ = ["SkinThickness", "measure_skin_thickness", "measure_pelvis_skin", "estimated_skin", "PELVIS_SKIN_MARKERS",
            "MAX_THICKNESS", "POSTURE_SD"]
 
 #: pelvic markers whose tissue is measured (the pelvis registration's skin markers)
@@ -66,7 +66,8 @@ class SkinThickness:
     ----------
     marker : str
     thickness, sd : m, what the registration uses
-    source : "MRI" (measured in the body label) or "prior" (population table)
+    source : "MRI" (measured in the body label), "registration" (its scale estimated with the registration
+        from the static trial, `estimated_skin`) or "prior" (population table)
     note : why the prior was kept ("" when measured)
     components : dict of sd components (m): voxel, landmark, normal, posture (measured only)
     exit_point : (3,) scanner m, where the ray leaves the body (measured only)
@@ -233,3 +234,12 @@ def measure_pelvis_skin(volume, pelvis, pelvis_mesh, *, markers=PELVIS_SKIN_MARK
     nrm = {k: surface_normal(pelvis_mesh, v[0]) for k, v in pts.items()}
     return measure_skin_thickness(volume, pts, nrm,
                                   normal_sd_deg=SURFACE_NORMAL_SD_DEG if normal_sd_deg is None else normal_sd_deg)
+
+
+def estimated_skin(reg) -> dict:
+    """{marker: `SkinThickness`} of the tissue a registration estimated (`personalize.registration.register_landmarks`
+    with a tissue prior): thickness k μ and its sd, source "registration"; {} when none was estimated."""
+    if getattr(reg, "tissue_scale", None) is None:
+        return {}
+    note = f"scale {reg.tissue_scale:.2f} x the site table (log sd {reg.tissue_scale_log_sd:.2f}), {reg.segment} registration"
+    return {k: SkinThickness(k, float(t), float(sd), "registration", note) for k, (t, sd) in reg.tissue.items()}

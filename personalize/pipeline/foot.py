@@ -17,12 +17,12 @@ from lowerlimb.errors import FitError, InputError
 from ..fusion import Fused, fuse_axis, fuse_gaussian
 from ..registration import Registration
 from .joint_estimates import AxisEstimates, AxisLine, CentreEstimates, Direction, JointContext, JointEstimates
-from .knee import centre_scale
+from .knee import centre_model_error, centre_scale
 from .motion import MOTION_ANKLE_AXIS_SD_DEG, PIG_ANKLE_AXIS_SD_DEG, pig_centre
 from .segment_registration import register_with_centre, toe_landmark
 
 __all__ = ["MRI_ANKLE_AXIS_SD_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE_MEASURED",
-           "SUBTALAR_DEFAULT", "estimate_ankle", "estimate_foot_axes"]
+           "SUBTALAR_DEFAULT", "estimate_ankle", "estimate_foot_axes", "MRI_ANKLE_MODEL_SD"]
 
 #: scale of the shank-registration ankle axis sd: claimed median 3.5 deg vs actual median 0.75 deg on 24 TRAINING
 #: phantom subjects, with rare gross talus failures of 14-77 deg that carry large claimed sds (calibration.json)
@@ -31,6 +31,9 @@ MRI_ANKLE_AXIS_SD_SCALE = 0.51
 #: (benchmarks/knee_ankle_calibration.py, mean Mahalanobis d² = 3; calibration.json); use 1.0 on real data
 MRI_ANKLE_CENTRE_COV_SCALE = 0.12
 MRI_ANKLE_CENTRE_COV_SCALE_MEASURED = 0.050
+#: model-error sd (m per axis) added to the scaled MRI ankle centre covariance with prior soft tissue (realistic
+#: phantoms, benchmarks/realistic_calibration.py; calibration.json)
+MRI_ANKLE_MODEL_SD = 0.0
 #: default subtalar axis (Inman 1976): 42 deg up from the foot's long axis, 23 deg medial, in the static lab
 SUBTALAR_DEFAULT = (42.0, 23.0)
 
@@ -46,7 +49,7 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
                                knee.gaussian.scaled(1.0 / knee_scale), axis=(j_ankle.origin, j_ankle.axis),
                                fallback=[("pig_ankle_centre", j_ankle.centre, pig)])
     scale = centre_scale(ctx, MRI_ANKLE_CENTRE_COV_SCALE, MRI_ANKLE_CENTRE_COV_SCALE_MEASURED)
-    mri = reg.transfer_estimate(j_ankle.centre).scaled(scale)
+    mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_ANKLE_MODEL_SD))
     u, sd, _ = reg.transfer_direction(j_ankle.axis, j_ankle.axis_sd_deg)
     mri_axis = Direction(u, sd * MRI_ANKLE_AXIS_SD_SCALE)
     if f"{S}ANKM" in ctx.static:

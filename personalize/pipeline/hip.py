@@ -29,7 +29,7 @@ from ..fusion import Fused, fuse_linear
 from .joint_estimates import CentreEstimates, JointContext, JointEstimates
 from .motion import DAVIS_HIP_SD, motion_hip
 
-__all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "fuse_hips", "estimate_hips"]
+__all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD", "fuse_hips", "estimate_hips"]
 
 #: variance scale of the registration-propagated MRI hip covariance: mean Mahalanobis d² = 3 on 24 TRAINING
 #: phantom subjects (48 legs; calibration.json ``mri_hip_cov_scale``); the phantoms' pelvis markers sit exactly
@@ -39,9 +39,12 @@ MRI_HIP_COV_SCALE = 0.43
 #: ``mri_hip_cov_scale_measured``); the measured sd holds an assumed 2 mm posture term and the 3 mm palpation sd,
 #: both absent on the phantoms: use 1.0 on real data until calibrated there
 MRI_HIP_COV_SCALE_MEASURED = 0.094
+#: model-error sd (m per axis) added to the scaled MRI hip covariance with prior soft tissue (realistic phantoms,
+#: benchmarks/realistic_calibration.py; calibration.json)
+MRI_HIP_MODEL_SD = 0.0
 
 
-def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None = None):
+def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None = None, model_sd: float = 0.0):
     """Joint Gaussian fusion of both hip centres from one pelvis registration and per-side motion centres.
 
     Model: z_mri = (h_r, h_l) + e_mri with e_mri ~ N(0, k C₆), C₆ the
@@ -51,7 +54,8 @@ def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None 
     z_mot,s = h_s + e_s, e_s ~ N(0, C_s) independent.  The generalised
     least-squares solution (`personalize.fusion.fuse_linear`) minimises
     (z - H h)ᵀ Σ⁻¹ (z - H h) over h = (h_r, h_l).
-    k defaults to `MRI_HIP_COV_SCALE`.
+    k defaults to `MRI_HIP_COV_SCALE`; ``model_sd`` σ adds σ² I to k C₆ (the model-error term calibrated on
+    the realistic phantoms, `MRI_HIP_MODEL_SD`).
 
     Parameters
     ----------
@@ -71,7 +75,7 @@ def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None 
     ys = dict(zip(sides, Y))
     # + (0.1 mm)² per point (the femoral head centres' detection error on the phantoms): two points alone do not
     # see a rotation about the line through them, so the registration part is singular along that direction
-    C = mri_scale * C + 1e-8 * np.eye(3 * n)
+    C = mri_scale * C + (1e-8 + float(model_sd) ** 2) * np.eye(3 * n)
     H = np.eye(3 * n)
     obs = [(np.concatenate([ys[s] for s in sides]), C, H)]
     names = ["mri"]
@@ -106,6 +110,7 @@ def estimate_hips(ctx: JointContext, reg_pelvis, pelvis_axes, est: JointEstimate
             est.sources[f"hip_{s}_motion"] = "Plug-in-Gait (Davis) regression of the static trial"
             est.notes.append(f"hip {s.upper()}: no functional hip centre ({exc}); Plug-in-Gait regression used")
     # both hips at once: their MRI estimates share the pelvis registration error
-    mri, fused, est.hip_joint = fuse_hips(reg_pelvis, hips_scanner, hip_motion, mri_scale=est.mri_hip_scale)
+    mri, fused, est.hip_joint = fuse_hips(reg_pelvis, hips_scanner, hip_motion, mri_scale=est.mri_hip_scale,
+                                          model_sd=0.0 if ctx.tissue_measured else MRI_HIP_MODEL_SD)
     for s in ctx.inputs.sides:
         est.centres.setdefault(s, {})["hip"] = CentreEstimates(mri[s], hip_motion[s], fused[s])

@@ -11,10 +11,12 @@ from __future__ import annotations
 from typing import Callable
 
 from kinematics.gait.pig import pelvis_frame
+from kinematics.gait.soft_tissue import tissue_scale_prior
 from lowerlimb.errors import InputError
 
 from ..marker_registration import register_segments
 from ..registration import GATE_P, gate_statistic, static_marker_positions
+from ..skin import estimated_skin
 from .foot import estimate_ankle, estimate_foot_axes
 from .hip import MRI_HIP_COV_SCALE, MRI_HIP_COV_SCALE_MEASURED, estimate_hips
 from .inputs import PELVIS_MARKERS, SubjectInputs, label_volume
@@ -72,12 +74,16 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, landmarks, joints: di
     est.mri_hip_scale = MRI_HIP_COV_SCALE_MEASURED if all_measured else MRI_HIP_COV_SCALE
     meshes = {k: v.mesh for k, v in surfaces.items()}
     say("registering the pelvis")
+    sub = inputs.subject
     regs = register_segments(landmarks, st, sides=inputs.sides, segments=("pelvis",), surfaces=meshes,
                              skin_thickness={k: v.thickness for k, v in measured.items()},
-                             skin_sd={k: v.sd for k, v in measured.items()})
+                             skin_sd={k: v.sd for k, v in measured.items()},
+                             tissue_prior=tissue_scale_prior(getattr(sub, "height", None), getattr(sub, "mass", None),
+                                                             getattr(sub, "age", None)))
     if "pelvis" not in regs:
         raise InputError(inputs.static.source, "the pelvis could not be registered (needs RASI, LASI, RPSI, LPSI in MRI and markers)")
     est.registrations["pelvis"] = regs["pelvis"]
+    est.skin.update(estimated_skin(regs["pelvis"]))
     dynamic = [t for k, t in sorted(inputs.trials.items()) if k != inputs.functional and not k.startswith("functional")]
     for s in inputs.sides:
         for jn in ("hip", "knee", "ankle"):

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from lowerlimb.errors import FitError, InputError
 
 from ..fusion import Fused, fuse_axis, fuse_gaussian
@@ -20,7 +22,8 @@ from .joint_estimates import AxisEstimates, CentreEstimates, Direction, JointCon
 from .motion import PIG_KNEE_AXIS_SD_DEG, motion_knee_axis, pig_centre
 from .segment_registration import register_with_centre
 
-__all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "estimate_knee"]
+__all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "MRI_KNEE_MODEL_SD",
+           "estimate_knee"]
 
 #: scale of the femur-registration knee axis sd: the claimed 2.2 deg median vs 0.34 deg rms actual on 24 TRAINING
 #: phantom subjects (their knee markers sit exactly on the flexion axis; calibration.json)
@@ -31,6 +34,14 @@ MRI_KNEE_AXIS_SD_SCALE = 0.107
 #: calibrated there
 MRI_KNEE_CENTRE_COV_SCALE = 0.14
 MRI_KNEE_CENTRE_COV_SCALE_MEASURED = 0.017
+#: model-error sd (m per axis) added to the scaled MRI knee centre covariance with prior soft tissue (realistic
+#: phantoms, benchmarks/realistic_calibration.py; calibration.json)
+MRI_KNEE_MODEL_SD = 0.0
+
+
+def centre_model_error(ctx: JointContext, sd: float) -> np.ndarray:
+    """The model-error covariance sd² I (m²) of an MRI centre with prior soft tissue; 0 with the tissue measured."""
+    return (0.0 if ctx.tissue_measured else float(sd) ** 2) * np.eye(3)
 
 
 def centre_scale(ctx: JointContext, prior: float, measured: float) -> float:
@@ -51,7 +62,7 @@ def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
                                ctx.meshes, j_hip.centre, hip.gaussian.scaled(1.0 / hip_scale),
                                axis=(j_knee.origin, j_knee.axis), fallback=[("pig_knee_centre", j_knee.centre, pig)])
     scale = centre_scale(ctx, MRI_KNEE_CENTRE_COV_SCALE, MRI_KNEE_CENTRE_COV_SCALE_MEASURED)
-    mri = reg.transfer_estimate(j_knee.centre).scaled(scale)
+    mri = reg.transfer_estimate(j_knee.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_KNEE_MODEL_SD))
     u, sd, _ = reg.transfer_direction(j_knee.axis, j_knee.axis_sd_deg)
     mri_axis = Direction(u, sd * MRI_KNEE_AXIS_SD_SCALE)
     ctx.say(f"knee {S}: functional axis")

@@ -90,7 +90,9 @@ class SubjectSummary:
             if self.truth is not None and self.truth.skin_error_mm:
                 doc["skin_thickness_error_mm"] = dict(self.truth.skin_error_mm)
         doc["mri_hip_cov_scale"] = est.mri_hip_scale
-        doc["registration"] = {k: {"rms_mm": r.rms * 1e3, "used": list(r.names), "rejected": list(r.rejected)}
+        doc["registration"] = {k: {"rms_mm": r.rms * 1e3, "used": list(r.names), "rejected": list(r.rejected),
+                                   **({"tissue_scale": r.tissue_scale, "tissue_scale_log_sd": r.tissue_scale_log_sd}
+                                      if getattr(r, "tissue_scale", None) is not None else {})}
                                for k, r in est.registrations.items()}
         doc["ik"] = {k: v.summary() for k, v in self.ik.items()}
         doc["chain_blend"] = self.chain_blend
