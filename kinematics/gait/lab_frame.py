@@ -51,6 +51,27 @@ is one cluster); a static pose (often arms out) takes its sign from the other
 trials, and with none the lab is refused.  The two end groups then stand for
 the pelvis and the feet, and the floor is taken from all marker samples.
 `LabFrame.evidence` says which rule gave each answer.
+
+The internal frame.  The rest of the toolkit works in one frame whatever the
+lab: X the static pose's facing direction (horizontal), Y to the subject's
+left, Z up (`LabFrame.internal_from_lab`, :math:`x_{int} = R\,x_{lab}`, same
+origin).  The facing :math:`\hat f` is the static trial's mean
+sacrum/PSIS-to-ASIS direction on the floor, else its mean heel-to-toe
+direction, else the direction of progression; it is snapped to the nearest
+horizontal lab axis when within `SNAP_DEG` of it, so that :math:`R` is a
+signed permutation of the lab axes.  Why snap: a lab lays its axes along the
+walkway and the subject stands on it facing along it to within a few degrees;
+the pelvis's own heading in a static trial is that plus the stance's
+rotation (5-10 deg is common) and marker placement error, which are not the
+lab's orientation.  A permutation keeps the walkway on an axis (as
+Plug-in-Gait's progression frame, the lab axis nearest the progression, does),
+is exact in floating point (a Z-up lab facing +X is left bit for bit as it
+is) and keeps the trials' coordinates recognisable to the lab.  Beyond
+`SNAP_DEG` (a diagonal walkway) the measured facing is used as it is.
+
+.. math::
+
+    R = \begin{pmatrix} \hat f^T \\ (\hat u \times \hat f)^T \\ \hat u^T \end{pmatrix}
 """
 from __future__ import annotations
 
@@ -73,6 +94,8 @@ END_FRACTION = 0.15
 """Share of the body's extent that makes up each end group in the geometric fallback."""
 MIN_SPREAD_RATIO = 1.3
 """In the geometric fallback, the feet's end must spread this many times wider than the head's."""
+SNAP_DEG = 20.0
+"""A static facing within this angle (deg) of a horizontal lab axis is taken as that axis (module docstring)."""
 
 _PELVIS = re.compile(r"(asis?|psis?|sacr)")
 _FEET = re.compile(r"(hee|toe|(?<!sh)ank)")
@@ -139,6 +162,9 @@ class LabFrame:
     walking : bool
         True when `forward` comes from a pelvis path, False when from the feet or pelvis of a pose
         (standing, treadmill).
+    facing : ndarray, shape (3,), or None
+        Unit horizontal direction the static pose faces (lab coordinates), snapped to a lab axis
+        within `SNAP_DEG` (module docstring); None: `forward` stands for it.
     """
 
     up: np.ndarray
@@ -147,11 +173,30 @@ class LabFrame:
     rotation_to_opensim: np.ndarray
     evidence: tuple[str, ...]
     walking: bool = True
+    facing: np.ndarray | None = None
 
     @property
     def up_axis(self) -> str:
         """The up axis as a signed label, e.g. ``'+Y'``."""
         return _axis_label(self.up)[0]
+
+    @property
+    def facing_axis(self) -> str:
+        """The internal X (static facing) as a signed lab-axis label, e.g. ``'-Z'``, with the angle when off it."""
+        label, ang = _axis_label(self.internal_from_lab[0])
+        return label if ang < 1e-9 else f"{label} ({ang:.1f} deg off)"
+
+    @property
+    def internal_from_lab(self) -> np.ndarray:
+        """(3, 3) rotation ``x_internal = R @ x_lab`` (module docstring): X facing, Y left, Z up.
+
+        Exactly the identity for a Z-up lab facing +X; a signed permutation whenever the facing was snapped.
+        """
+        f = self.forward if self.facing is None else self.facing
+        if self.facing is None:
+            f = f - (f @ self.up) * self.up
+            f = f / np.linalg.norm(f)
+        return np.vstack([f, np.cross(self.up, f), self.up])
 
     def describe(self) -> str:
         """One line for the console, e.g. ``'Y up, walking +X'`` (with the angle when off an axis by > 5 deg)."""
@@ -160,7 +205,18 @@ class LabFrame:
         up = up[1:] if up[0] == "+" else up
         fwd = label if ang <= 5.0 else f"{label} ({ang:.0f} deg off)"
         verb = "walking" if self.walking else "facing"
-        return f"{up} up, {verb} {fwd}, floor at {self.floor_height:.3f} m"
+        text = f"{up} up, {verb} {fwd}, floor at {self.floor_height:.3f} m"
+        if self.facing is not None:
+            text += f", static facing {self.facing_axis}"
+        return text
+
+    def to_json(self) -> dict:
+        """The lab as ``summary.json`` states it (lab coordinates, m)."""
+        return {"up": self.up_axis, "facing": self.facing_axis, "walking": _axis_label(self.forward)[0]
+                if self.walking else None, "forward": self.forward.tolist(), "floor_height_m": self.floor_height,
+                "internal_from_lab": self.internal_from_lab.tolist(),
+                "internal_frame": "X the static pose's facing, Y left, Z up; x_internal = internal_from_lab @ x_lab "
+                                  "(same origin)", "evidence": list(self.evidence)}
 
 
 def _geometric_ends(trial: MarkerTrial, pose: bool) -> tuple[np.ndarray, np.ndarray, bool, str]:
@@ -292,16 +348,49 @@ def detect_lab(static: MarkerTrial | None, trials: Sequence[MarkerTrial]) -> Lab
         # treadmill or walking in place: the feet point the way the subject faces
         forward, why = _facing(allt, horiz)
         walking = False
-        evidence.append(why)
+        evidence.append(f"no pelvis path of {MIN_WALK_M} m; forward: {why}")
     right = np.cross(forward, up)
     rot = np.vstack([forward, up, right])
+    facing = None
+    if static is not None:
+        facing, why = _static_facing(static, up, forward)
+        evidence.append(why)
     return LabFrame(up=up, forward=forward, floor_height=floor, rotation_to_opensim=rot, evidence=tuple(evidence),
-                    walking=walking)
+                    walking=walking, facing=facing)
 
 
-def _facing(trials: list[MarkerTrial], horiz: np.ndarray) -> tuple[np.ndarray, str]:
-    """Facing direction without a pelvis path: mean heel-to-toe, else PSIS/sacrum-to-ASIS, on the floor."""
-    for (front, back, what) in ((_TOE, _HEEL, "heel-to-toe"), (_ANTERIOR_PELVIS, _POSTERIOR_PELVIS, "sacrum-to-ASIS")):
+def _snap(v: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, str]:
+    """`v` (unit, horizontal) as the nearest horizontal signed lab axis when within `SNAP_DEG`, else as it is."""
+    label, ang = _axis_label(v)
+    if ang <= SNAP_DEG:
+        k = int(np.argmax(np.abs(v)))
+        e = np.zeros(3)
+        e[k] = 1.0 if v[k] > 0 else -1.0
+        if abs(e @ up) < 0.5:
+            return e, f"snapped to {label} ({ang:.1f} deg off, within {SNAP_DEG:g})"
+    return v, f"{ang:.1f} deg from {label}, kept as measured (beyond {SNAP_DEG:g} deg)"
+
+
+def _static_facing(static: MarkerTrial, up: np.ndarray, forward: np.ndarray) -> tuple[np.ndarray, str]:
+    """The direction the static pose faces (module docstring) and how it was found."""
+    horiz = np.eye(3) - np.outer(up, up)
+    try:
+        v, why = _facing([static], horiz, order=((_ANTERIOR_PELVIS, _POSTERIOR_PELVIS, "sacrum-to-ASIS"),
+                                                 (_TOE, _HEEL, "heel-to-toe")))
+    except InputError:
+        v = horiz @ forward
+        v = v / np.linalg.norm(v)
+        why = f"{static.source}: no ASIS/PSIS or heel/toe markers; static facing taken from the progression"
+    f, snap = _snap(v, up)
+    return f, f"{why}; internal X (static facing) {snap}"
+
+
+_FEET_FIRST = ((_TOE, _HEEL, "heel-to-toe"), (_ANTERIOR_PELVIS, _POSTERIOR_PELVIS, "sacrum-to-ASIS"))
+
+
+def _facing(trials: list[MarkerTrial], horiz: np.ndarray, order=_FEET_FIRST) -> tuple[np.ndarray, str]:
+    """Facing direction without a pelvis path: mean heel-to-toe, else PSIS/sacrum-to-ASIS (`order`), on the floor."""
+    for (front, back, what) in order:
         for t in trials:
             fi, bi = _pick(t, front), _pick(t, back)
             if not (fi and bi):
@@ -312,7 +401,7 @@ def _facing(trials: list[MarkerTrial], horiz: np.ndarray) -> tuple[np.ndarray, s
             if n > 0.05:
                 f = v / n
                 lab, ang = _axis_label(f)
-                return f, (f"{t.source}: no pelvis path of {MIN_WALK_M} m; forward {lab} ({ang:.1f} deg off) from "
-                           f"the mean {what} direction, {n * 1000:.0f} mm")
+                return f, (f"{t.source}: {lab} ({ang:.1f} deg off) from the mean {what} direction, "
+                           f"{n * 1000:.0f} mm")
     raise InputError(trials[0].source, f"cannot tell the direction of progression: no trial's pelvis moves "
                                        f"{MIN_WALK_M} m and no trial has heel and toe or ASIS and PSIS markers")

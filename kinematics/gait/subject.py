@@ -18,7 +18,8 @@ from lowerlimb.errors import InputError
 from lowerlimb.geometry import DEFAULT_MARKER_DIAMETER
 from kinematics.io.markers import MarkerTrial
 
-__all__ = ["SubjectMeasurements", "read_subject", "read_vsk", "validate_static"]
+__all__ = ["SubjectMeasurements", "read_subject", "read_subject_values", "subject_from_values", "read_vsk",
+           "validate_static", "BONE_MEASURABLE", "measure_from_bones"]
 
 
 @dataclass(frozen=True)
@@ -136,6 +137,10 @@ _REQUIRED = ("left_leg_length", "right_leg_length", "left_knee_width", "right_kn
              "left_ankle_width", "right_ankle_width")
 
 
+#: the measurements a segmented bone set gives when the subject file leaves them out (`measure_from_bones`)
+BONE_MEASURABLE = _REQUIRED
+
+
 def read_vsk(path: str | os.PathLike) -> SubjectMeasurements:
     """Read subject measurements from a Vicon ``.vsk`` file.
 
@@ -143,6 +148,11 @@ def read_vsk(path: str | os.PathLike) -> SubjectMeasurements:
     values (no ``VALUE`` attribute) take the defaults; an ``InterAsisDistance``
     of 0 means "measure from the markers" (None here).
     """
+    return subject_from_values(_vsk_values(path), path)
+
+
+def _vsk_values(path) -> dict:
+    """The vsk's measurements as SI values keyed by `SubjectMeasurements` field (only those it gives)."""
     from defusedxml import ElementTree as ET
 
     p = Path(path)
@@ -164,23 +174,46 @@ def read_vsk(path: str | os.PathLike) -> SubjectMeasurements:
             values[key] = float(el.get("VALUE")) * factor
         except ValueError:
             raise InputError(path, f"parameter {name} has a non-numeric value {el.get('VALUE')!r}") from None
-    missing = [k for k in _REQUIRED if k not in values]
-    if missing:
-        names = [n for n, (k, _) in _VSK.items() if k in missing]
-        raise InputError(path, f"missing subject measurements: {', '.join(names)}")
     if values.get("inter_asis_distance") == 0.0:
         values["inter_asis_distance"] = None
     for k in ("left_asis_trochanter", "right_asis_trochanter"):
         if values.get(k) == 0.0:
             values[k] = None
-    return SubjectMeasurements(**values, source=os.fspath(path))
+    return values
+
+
+def subject_from_values(values: dict, path, *, missing_ok: bool = False) -> SubjectMeasurements | None:
+    """`SubjectMeasurements` of `values` (`read_subject_values`); None when `missing_ok` and only
+    `BONE_MEASURABLE` ones are missing (they are then measured on the bones, `measure_from_bones`).
+
+    Raises
+    ------
+    InputError : a required measurement missing (naming every one), or a value out of range
+    """
+    missing = [k for k in _REQUIRED if k not in values]
+    if missing and missing_ok and set(missing) <= set(BONE_MEASURABLE):
+        return None
+    if missing:
+        if Path(path).suffix.lower() == ".vsk":
+            missing = [n for n, (k, _) in _VSK.items() if k in missing]
+        raise InputError(path, f"missing subject measurements: {', '.join(missing)}")
+    try:
+        return SubjectMeasurements(**values, source=os.fspath(path))
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, f"bad measurement value ({exc})") from None
 
 
 def read_subject(path: str | os.PathLike) -> SubjectMeasurements:
     """Read subject measurements from a ``.vsk`` (Vicon, mm) or ``.json`` (SI) file."""
+    return subject_from_values(read_subject_values(path), path)
+
+
+def read_subject_values(path: str | os.PathLike) -> dict:
+    """The measurements a ``.vsk`` (Vicon, mm) or ``.json`` (SI) subject file gives, SI, keyed by
+    `SubjectMeasurements` field; only those present (none required here: `subject_from_values` checks)."""
     p = Path(path)
     if p.suffix.lower() == ".vsk":
-        return read_vsk(p)
+        return _vsk_values(p)
     if p.suffix.lower() != ".json":
         raise InputError(path, "subject measurements must be a .vsk or .json file")
     if not p.is_file():
@@ -196,13 +229,83 @@ def read_subject(path: str | os.PathLike) -> SubjectMeasurements:
     unknown = sorted(set(d) - known)
     if unknown:
         raise InputError(path, f"unknown measurement(s): {', '.join(unknown)}")
-    missing = [k for k in _REQUIRED if k not in d]
-    if missing:
-        raise InputError(path, f"missing subject measurements: {', '.join(missing)}")
     try:
-        return SubjectMeasurements(**{k: (None if v is None else float(v)) for k, v in d.items()}, source=os.fspath(path))
+        return {k: (None if v is None else float(v)) for k, v in d.items()}
     except (TypeError, ValueError) as exc:
         raise InputError(path, f"bad measurement value ({exc})") from None
+
+
+def measure_from_bones(values: dict, points: dict, *, source=None) -> tuple[SubjectMeasurements, dict]:
+    r"""Subject measurements with the `BONE_MEASURABLE` values a subject file left out taken from the bones.
+
+    Plug-in-Gait's measurements are taken on the skin (Vicon's Plug-in-Gait manual: leg length ASIS to
+    medial malleolus through the knee with a tape, knee and ankle widths across the epicondyles and the
+    malleoli with a calliper).  From segmented bones (landmark positions, m, one common frame):
+
+    .. math::
+
+        L = \lVert a - k \rVert + \lVert k - m \rVert, \qquad
+        w_{knee} = \lVert e_l - e_m \rVert + 2 t_{KNE}, \qquad
+        w_{ankle} = \lVert l - m \rVert + 2 t_{ANK}
+
+    with a the ASIS, k the knee joint centre, m and l the medial and lateral malleoli, e_l and e_m the
+    lateral and medial epicondyles and t the population soft-tissue thickness over the site
+    (`kinematics.gait.soft_tissue`; 5 and 3 mm).  The leg length is bony (the tape's skin offsets at the
+    ASIS and malleolus lie mostly across the leg).  A side without the bones takes the other side's value.
+    Values given in `values` always win.
+
+    Parameters
+    ----------
+    values : dict, `read_subject_values`
+    points : dict name -> (3,) position, m: ``RASI``, ``LASI``, ``RKJC``/``LKJC`` (knee centres), ``RKNE``,
+        ``RMFC``, ``RANK``, ``RMMA`` and the left ones (any may be missing)
+    source : the subject file, for messages
+
+    Returns
+    -------
+    (SubjectMeasurements, sources) with sources field -> "subject.json" or how it was measured (and its value)
+
+    Raises
+    ------
+    InputError : a measurement neither given nor measurable (naming it and the missing landmarks)
+    """
+    from .soft_tissue import tissue_prior
+
+    def dist(*names):
+        p = [points.get(n) for n in names]
+        if any(x is None or not np.all(np.isfinite(x)) for x in p):
+            return None
+        return float(sum(np.linalg.norm(np.asarray(a, float) - np.asarray(b, float)) for a, b in zip(p, p[1:])))
+
+    rules = {"leg_length": (("{S}ASI", "{S}KJC", "{S}MMA"), 0.0, "ASIS - knee centre - medial malleolus (bones)"),
+             "knee_width": (("{S}KNE", "{S}MFC"), 2 * tissue_prior("KNE").mean,
+                            "lateral - medial epicondyle (bones) + 2 x {t:.0f} mm tissue prior"),
+             "ankle_width": (("{S}ANK", "{S}MMA"), 2 * tissue_prior("ANK").mean,
+                             "lateral - medial malleolus (bones) + 2 x {t:.0f} mm tissue prior")}
+    out = dict(values)
+    sources = {k: "subject file" for k in BONE_MEASURABLE if k in values}
+    measured: dict = {}
+    for what, (names, add, how) in rules.items():
+        for side, S in (("right", "R"), ("left", "L")):
+            d = dist(*(n.format(S=S) for n in names))
+            if d is not None:
+                measured[f"{side}_{what}"] = (d + add, how.format(t=500 * add))
+    for key in BONE_MEASURABLE:
+        if key in out:
+            continue
+        side, what = key.split("_", 1)
+        other = f"{'left' if side == 'right' else 'right'}_{what}"
+        if key in measured:
+            out[key], how = measured[key]
+        elif other in measured:
+            out[key], how = measured[other]
+            how = f"{how}, the {other.split('_')[0]} side's (no {side} bones)"
+        else:
+            names = [n.format(S=S) for n in rules[what][0] for S in "RL"]
+            raise InputError(source, f"{key} is neither given nor measurable: the bones lack "
+                                     f"{' / '.join(sorted(set(names) - set(points)))}")
+        sources[key] = f"{how}: {out[key] * 1e3:.1f} mm"
+    return subject_from_values(out, source or "subject file"), sources
 
 
 def validate_static(subject: SubjectMeasurements, static: MarkerTrial, *, tolerance: float = 0.08) -> dict:

@@ -192,11 +192,11 @@ def realistic_validation_job(subject_dir: Path, out: Path, progress: Callable[[s
 def coverage_metrics(summary: dict, subject_dir: Path) -> dict:
     """Per joint and source: 1 when the truth lies inside the stated 95 % ellipsoid (chi-square 3 dof), else 0.
 
-    The estimates (summary ``estimates.<joint>_centre``: mean and covariance, static lab frame) are
-    compared with the true static centres.  Returns ``{"coverage.hip_r.fused": 1.0, ...}`` and the
-    squared Mahalanobis distances ``mahalanobis2.<joint>.<source>``.
+    The estimates (summary ``estimates.<joint>_centre``: mean and covariance, the run's internal frame)
+    are compared with the true static centres mapped by the summary's ``lab.internal_from_lab``.
+    Returns ``{"coverage.hip_r.fused": 1.0, ...}`` and the squared Mahalanobis distances ``mahalanobis2.<joint>.<source>``.
     """
-    truth = true_static_centres(Path(subject_dir))
+    truth = true_static_centres(Path(subject_dir), (summary.get("lab") or {}).get("internal_from_lab"))
     est = summary.get("estimates") or {}
     out: dict[str, float] = {}
     if not truth:

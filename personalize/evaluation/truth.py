@@ -2,8 +2,11 @@
 
 A phantom subject folder (`personalize.evaluation.phantom_subject.write_phantom_subject`)
 holds ``truth.json`` (scanner frame) and ``truth/static_centres.trc`` (the true static
-joint centres in the lab); `truth_in_static_lab` maps the truth to the static lab frame,
-`errors_against_truth` and `angle_errors_against_truth` measure a run against it.
+joint centres in the lab's own axes, as the trials are written); `truth_in_static_lab` maps the
+truth to the internal frame the run works in (the trials' lab read by the run,
+`SubjectInputs.lab`, x_internal = lab.internal_from_lab @ x_lab: the same map as the trials),
+`errors_against_truth` and `angle_errors_against_truth` measure a run against it.  The joint
+angles compared (hip, knee, ankle) are relative angles between segments: frame-free.
 """
 from __future__ import annotations
 
@@ -51,26 +54,38 @@ STATIC_CENTRE_MARKERS = {"hip_r": "RHJC", "hip_l": "LHJC", "knee_r": "RKJC", "kn
                          "ankle_l": "LAJC"}
 
 
-def true_static_centres(folder) -> dict | None:
-    """True hip/knee/ankle centres in the static lab (``truth/static_centres.trc``, median over frames), or None."""
+def true_static_centres(folder, internal_from_lab=None) -> dict | None:
+    """True hip/knee/ankle centres of the static trial (``truth/static_centres.trc``, median over frames), or None.
+
+    In the lab's axes, or with `internal_from_lab` (3, 3; `LabFrame.internal_from_lab`, summary.json
+    ``lab.internal_from_lab``) in the run's internal frame.
+    """
     from kinematics.io.storage import read_trc
+    from personalize.pipeline.lab import rotate_points
 
     path = Path(folder) / "truth" / "static_centres.trc"
     if not path.is_file():
         return None
     cen = read_trc(path)
-    return {k: np.nanmedian(cen.marker(m), axis=0) for k, m in STATIC_CENTRE_MARKERS.items() if m in cen.names}
+    out = {k: np.nanmedian(cen.marker(m), axis=0) for k, m in STATIC_CENTRE_MARKERS.items() if m in cen.names}
+    if internal_from_lab is not None:
+        R = np.asarray(internal_from_lab, float)
+        out = {k: rotate_points(R, v) for k, v in out.items()}
+    return out
 
 
 def truth_in_static_lab(inputs) -> dict | None:
-    """Phantom truth (joint centres, knee/ankle axes) in the static lab frame, or None.
+    """Phantom truth (joint centres, knee/ankle axes) in the run's internal frame, or None.
 
-    The scanner -> lab map is the rigid fit (Kabsch) of truth.json's hip,
+    The scanner -> internal map is the rigid fit (Kabsch) of truth.json's hip,
     knee and ankle joint origins onto the true static centres of
-    ``truth/static_centres.trc`` (median over frames); its rms is returned.
+    ``truth/static_centres.trc`` (median over frames) mapped by the run's lab
+    (`inputs.lab`, as the trials are); its rms is returned.
     """
     tr = inputs.truth
-    centres = true_static_centres(inputs.folder) if tr is not None and "joints" in tr else None
+    lab = getattr(inputs, "lab", None)
+    R = None if lab is None else lab.internal_from_lab
+    centres = true_static_centres(inputs.folder, R) if tr is not None and "joints" in tr else None
     if centres is None:
         return None
     J = tr["joints"]["joints"]

@@ -1,11 +1,19 @@
 """Inputs of a subject folder: find, read and check them (the first stage of `personalize.pipeline.run_subject`).
 
 A subject folder holds ``labels.nii.gz`` (+ ``label_map.json``) or ``bones/``,
-``static.c3d``, ``subject.json`` and every other ``*.c3d`` (gait, crouch,
-functional ``functional_hip*.c3d``).  Refused (`InputError`, one line naming the
-file): a missing static or motion trial, a trial whose rigid pelvis marker
-distances differ from the static trial's (another subject), labels and markers
-without a common side.
+``subject.json``, the static trial (``static.c3d``; any file whose name starts
+with ``static``, whatever its case: ``Static.c3d``, ``STATIC.C3D``,
+``Static_trial.trc``) and every other ``*.c3d`` / ``*.trc`` (gait, crouch,
+functional ``functional_hip*``).  A trial written both as C3D and TRC (same
+name) is read from the C3D.  Every trial is read in its lab's axes, the lab
+is read from the trials (`personalize.pipeline.lab`) and each trial is
+expressed in the internal frame (X the static pose's facing, Y left, Z up, m).
+Refused (`InputError`, one line naming the file): no or several static
+trials, a missing motion trial, an ambiguous lab, a trial whose rigid pelvis
+marker distances differ from the static trial's (another subject), labels
+and markers without a common side.  ``subject.json`` may leave out the leg
+lengths and knee and ankle widths: they are then measured on the bones
+(`kinematics.gait.subject.measure_from_bones`, in `run.read_subject_bones`).
 """
 from __future__ import annotations
 
@@ -17,7 +25,7 @@ import numpy as np
 from kinematics.io.markers import MarkerTrial
 from lowerlimb.errors import InputError
 
-__all__ = ["SubjectInputs", "find_inputs", "check_same_subject", "check_trial_legs", "TRIAL_LEG_RATIO_TOL",
+__all__ = ["SubjectInputs", "find_inputs", "find_trials", "check_same_subject", "check_trial_legs", "TRIAL_LEG_RATIO_TOL",
            "label_volume", "PELVIS_MARKERS"]
 
 #: the rigid pelvis markers every trial must show
@@ -33,11 +41,15 @@ class SubjectInputs:
     folder : Path; bones : labels file or bones/ folder; label_map : Path or None
     static : MarkerTrial; trials : dict name -> MarkerTrial (every dynamic trial, incl. functional)
     functional : name of the hip calibration trial or None
-    subject : kinematics.gait.subject.SubjectMeasurements
+    subject : kinematics.gait.subject.SubjectMeasurements, or None until the bones give the measurements
+        subject.json leaves out (`subject_given` holds what it gives)
     truth : dict (truth.json) or None; sides : tuple of sides with both bones and markers
     marker_set : `kinematics.io.marker_sets.MarkerSet` the trials' labels follow (None: Plug-in-Gait names)
-    lab : `kinematics.gait.lab_frame.LabFrame` the trials were recorded in (None: already the internal frame);
-        every trial above is expressed in the internal frame (X forward, Y left, Z up, m)
+    lab : `kinematics.gait.lab_frame.LabFrame` the trials were recorded in (lab coordinates); every trial
+        above is expressed in the internal frame, x_internal = lab.internal_from_lab @ x_lab (X the static
+        pose's facing, Y left, Z up, m)
+    subject_given : what subject.json gives (SI, `kinematics.gait.subject.read_subject_values`)
+    subject_sources : measurement -> "subject file" or how the bones gave it (set with the bones)
     """
 
     folder: Path
@@ -51,6 +63,8 @@ class SubjectInputs:
     sides: tuple
     marker_set: object = None
     lab: object = None
+    subject_given: dict | None = None
+    subject_sources: dict | None = None
 
 
 def _pelvis_distances(trial: MarkerTrial) -> np.ndarray:
@@ -69,10 +83,11 @@ def find_inputs(subject_dir: str | Path) -> SubjectInputs:
     ------
     InputError : one line naming the file and the problem
     """
-    from kinematics.io.c3d import read_c3d
-    from kinematics.gait.subject import read_subject
+    from kinematics.gait.subject import read_subject_values, subject_from_values
+    from kinematics.io.trials import read_trial
 
     from ..evaluation.truth import read_truth
+    from .lab import read_lab, to_internal
 
     folder = Path(subject_dir)
     if not folder.is_dir():
@@ -83,26 +98,56 @@ def find_inputs(subject_dir: str | Path) -> SubjectInputs:
     if bones is None:
         raise InputError(folder, "no bone images: expected labels.nii.gz (with label_map.json) or a bones/ folder of meshes")
     label_map = folder / "label_map.json" if (folder / "label_map.json").is_file() and bones.is_file() else None
-    if not (folder / "static.c3d").is_file():
-        raise InputError(folder / "static.c3d", "missing: the static (standing) trial is required")
+    static_path, trial_paths = find_trials(folder)
     if not (folder / "subject.json").is_file():
-        raise InputError(folder / "subject.json", "missing: height, mass and Plug-in-Gait measurements are required")
-    subject = read_subject(folder / "subject.json")
-    static = read_c3d(folder / "static.c3d")
-    names = sorted(p.name for p in folder.glob("*.c3d") if p.name != "static.c3d")
-    if not names:
-        raise InputError(folder, "no motion trial: at least one C3D besides static.c3d is required")
-    trials = {Path(n).stem: read_c3d(folder / n) for n in names}
+        raise InputError(folder / "subject.json", "missing: height and mass (and the Plug-in-Gait measurements the "
+                                                  "bones cannot give) are required")
+    given = read_subject_values(folder / "subject.json")
+    subject = subject_from_values(given, folder / "subject.json", missing_ok=True)
+    static = read_trial(static_path)
+    trials = {p.stem: read_trial(p) for p in trial_paths}
+    lab = read_lab(static, trials.values())
+    static = to_internal(static, lab)
+    trials = {k: to_internal(t, lab) for k, t in trials.items()}
     check_same_subject(static, trials.values())
-    functional = next((k for k in ("functional_hip",) if k in trials), None)
+    functional = next((k for k in sorted(trials) if k.lower() == "functional_hip"), None)
     if functional is None:
-        functional = next((k for k in sorted(trials) if k.startswith("functional")), None)
+        functional = next((k for k in sorted(trials) if k.lower().startswith("functional")), None)
     truth = read_truth(folder / "truth.json")
     marker_sides = [s for s in ("r", "l") if all(s.upper() + m in static.names for m in _REQUIRED)
                     and all(_visible(static, s.upper() + m) for m in _REQUIRED)]
     if not marker_sides:
-        raise InputError(folder / "static.c3d", f"no side has all of the markers {', '.join(_REQUIRED)} (R/L prefixed)")
-    return SubjectInputs(folder, bones, label_map, static, trials, functional, subject, truth, tuple(marker_sides))
+        raise InputError(static_path, f"no side has all of the markers {', '.join(_REQUIRED)} (R/L prefixed)")
+    return SubjectInputs(folder, bones, label_map, static, trials, functional, subject, truth, tuple(marker_sides),
+                         lab=lab, subject_given=given)
+
+def find_trials(folder: Path) -> tuple[Path, list[Path]]:
+    """The static trial and the motion trials of a subject folder (module docstring).
+
+    Returns (static path, sorted motion trial paths).  A stem present as both ``.c3d`` and ``.trc``
+    is read from the C3D (it is the lab's original; the TRC an export).
+
+    Raises
+    ------
+    InputError : no static trial, several (listed), or no motion trial
+    """
+    from kinematics.io.trials import TRIAL_SUFFIXES
+
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in TRIAL_SUFFIXES)
+    by_stem: dict[str, list[Path]] = {}
+    for p in files:
+        by_stem.setdefault(p.stem, []).append(p)
+    chosen = [next((p for p in ps if p.suffix.lower() == ".c3d"), ps[0]) for ps in by_stem.values()]
+    statics = [p for p in chosen if p.stem.lower().startswith("static")]
+    if not statics:
+        raise InputError(folder / "static.c3d", "missing: the static (standing) trial is required (static.c3d or "
+                                                ".trc, any case)")
+    if len(statics) > 1:
+        raise InputError(folder, f"several static trials ({', '.join(p.name for p in statics)}): keep one")
+    motion = sorted(p for p in chosen if p not in statics)
+    if not motion:
+        raise InputError(folder, f"no motion trial: at least one C3D or TRC besides {statics[0].name} is required")
+    return statics[0], motion
 
 
 

@@ -77,6 +77,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
     say = progress or (lambda m: None)
     say("reading inputs")
     inputs = find_inputs(subject_dir)
+    say(f"lab: {inputs.lab.describe()}")
     volume = label_volume(inputs)        # read once: the bone surfaces and the soft-tissue measurement use it
     inputs, bones = read_subject_bones(inputs, volume, say)
     say("measuring the soft tissue over the pelvic landmarks")
@@ -100,7 +101,8 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
     notes = list(est.notes) + [f"landmarks of {b}: {', '.join(r.flags)} ({'; '.join(r.notes) or 'see landmarks.json'})"
                                for b, r in bones.landmarks.bones.items() if r.flags]
     summary = SubjectSummary(inputs.folder.name, str(inputs.folder), list(inputs.sides), sorted(inputs.trials),
-                             inputs.functional, bones.dropped, notes, pm.parameters.sources, est, lengths, intercepts)
+                             inputs.functional, bones.dropped, notes, pm.parameters.sources, est, lengths, intercepts,
+                             lab=inputs.lab.to_json(), measurements=_measurements_json(inputs))
     meshes_lab = bone_meshes_lab(bones.surfaces, est, inputs.sides)
     say("checking the model against the bones")
     check_model(pm, meshes_lab, inputs.folder, skin)
@@ -151,7 +153,31 @@ def read_subject_bones(inputs: SubjectInputs, volume, say) -> tuple[SubjectInput
                                         f"of side(s) {', '.join(inputs.sides)}: no side with both femur/tibia and markers")
     say("detecting landmarks")
     bones = analyse_bones(surfaces, input=inputs.bones, progress=lambda b: say(f"landmarks {b}"))
-    return replace(inputs, sides=sides), bones
+    subject, sources = _subject_measurements(inputs, bones)
+    for k, v in sources.items():
+        if v != "subject file":
+            say(f"{k} measured on the bones: {v}")
+    return replace(inputs, sides=sides, subject=subject, subject_sources=sources), bones
+
+
+def _measurements_json(inputs: SubjectInputs) -> dict:
+    """summary.json's ``subject_measurements``: the Plug-in-Gait lengths used (m) and where each came from."""
+    return {k: {"value": getattr(inputs.subject, k), "source": v} for k, v in (inputs.subject_sources or {}).items()}
+
+
+def _subject_measurements(inputs: SubjectInputs, bones) -> tuple[object, dict]:
+    """The subject's Plug-in-Gait measurements, those subject.json leaves out measured on the bones
+    (`kinematics.gait.subject.measure_from_bones`), and each one's source."""
+    from kinematics.gait.subject import BONE_MEASURABLE, measure_from_bones
+
+    given = inputs.subject_given or {}
+    if inputs.subject is not None:
+        return inputs.subject, {k: "subject file" for k in BONE_MEASURABLE}
+    points = {n: lm.position for b in bones.landmarks.bones.values() for n, lm in b.landmarks.items()}
+    for s in ("r", "l"):
+        if f"knee_{s}" in bones.joints:
+            points[f"{s.upper()}KJC"] = bones.joints[f"knee_{s}"].centre.mean
+    return measure_from_bones(given, points, source=inputs.folder / "subject.json")
 
 
 def build_model(inputs: SubjectInputs, est, joints: dict, say) -> tuple[object, dict]:

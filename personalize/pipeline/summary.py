@@ -18,7 +18,8 @@ UNITS = {"centres": "m (mm where named *_mm)", "axes": "unit vectors", "angles":
          "angle_offset_deg": "per coordinate, mean IK - true angle over the gait trials (constant part of the error), deg",
          "ik_rms_mm": "largest over the dynamic trials of the mean per-frame RMS marker error, mm",
          "errors": "worst side; *_mm Euclidean distance, *_deg angle between axes (sign-free)"}
-FRAME = "lab frame of the static trial (X forward, Y left, Z up)"
+FRAME = ("internal frame: X the static pose's facing, Y left, Z up, the lab's origin "
+         "(x_internal = lab.internal_from_lab @ x_lab)")
 
 
 @dataclass
@@ -29,6 +30,8 @@ class SubjectSummary:
     intercepts : side -> `personalize.pipeline.knee_law.KneeIntercept`
     ik : trial -> `personalize.pipeline.trials.TrialFit`; chain_blend : `trials.chain_blend` (JSON-ready)
     truth : `personalize.evaluation.truth.TruthComparison` or None
+    lab : `kinematics.gait.lab_frame.LabFrame.to_json` of the trials' lab
+    measurements : Plug-in-Gait measurement -> {"value": m, "source": subject file or how the bones gave it}
     """
 
     subject: str
@@ -45,6 +48,8 @@ class SubjectSummary:
     ik: dict = field(default_factory=dict)
     chain_blend: dict = field(default_factory=dict)
     truth: object = None
+    lab: dict | None = None
+    measurements: dict | None = None
 
     @property
     def ik_rms_mm(self) -> float:
@@ -82,7 +87,9 @@ class SubjectSummary:
         """The ``summary.json`` document (SI units unless a key names its unit)."""
         est = self.estimates
         doc = {"subject": self.subject, "subject_dir": self.subject_dir, "sides": list(self.sides), "units": UNITS,
-               "frame": FRAME, "trials": list(self.trials), "functional_trial": self.functional_trial,
+               "frame": FRAME, **({"lab": self.lab} if self.lab is not None else {}),
+               **({"subject_measurements": self.measurements} if self.measurements is not None else {}),
+               "trials": list(self.trials), "functional_trial": self.functional_trial,
                "dropped_joints": dict(self.dropped_joints), "notes": list(self.notes), "sources": self.sources,
                "estimates": self.estimates_json()}
         if est.skin:
