@@ -23,8 +23,14 @@ rotation ±0.9 rad) and translations (±30 mm) have no gait2392 counterpart;
 they bound the coupled laws' range, well outside the few degrees and
 millimetres of healthy knees.  The pelvis (free joint placing the subject in
 the lab) is unbounded: gait2392's ±90° and metre bounds are for its own lab
-and are not clamped there either.  None of the ranges is clamped in IK
-(``Coordinate.clamped`` stays False, as in gait2392).
+and are not clamped there either.  The personalised model
+(`personalize.model_builder`) clamps the leg's rotational coordinates to
+these ranges (its IK and OpenSim's keep them inside); gait2392 clamps none.
+
+The pelvis coordinates are gait2392's: in OpenSim's ground (X forward, Y up,
+Z right) ``pelvis_tilt`` about Z, ``pelvis_list`` about X,
+``pelvis_rotation`` about Y (body-fixed, in that order), ``pelvis_tx/ty/tz``
+the pelvis origin along X, Y, Z (``pelvis_ty`` its height).
 """
 from __future__ import annotations
 
@@ -64,12 +70,12 @@ _G2392_FOOT = (-90.0 * _DEG, 90.0 * _DEG)
 
 #: every coordinate, by stem
 COORDINATES: dict[str, CoordinateDef] = {c.stem: c for c in (
-    CoordinateDef("pelvis_tilt", "ground_pelvis", "rotational", _INF, "posterior tilt (about the lab's lateral axis)"),
-    CoordinateDef("pelvis_list", "ground_pelvis", "rotational", _INF, "list towards the left"),
-    CoordinateDef("pelvis_rotation", "ground_pelvis", "rotational", _INF, "rotation towards the left (about up)"),
-    CoordinateDef("pelvis_tx", "ground_pelvis", "translational", _INF, "pelvis origin along the lab's x"),
-    CoordinateDef("pelvis_ty", "ground_pelvis", "translational", _INF, "pelvis origin along the lab's y"),
-    CoordinateDef("pelvis_tz", "ground_pelvis", "translational", _INF, "pelvis origin along the lab's z"),
+    CoordinateDef("pelvis_tilt", "ground_pelvis", "rotational", _INF, "posterior tilt (about ground Z, to the right)"),
+    CoordinateDef("pelvis_list", "ground_pelvis", "rotational", _INF, "list: the left side up (about ground X, forward)"),
+    CoordinateDef("pelvis_rotation", "ground_pelvis", "rotational", _INF, "rotation towards the left (about ground Y, up)"),
+    CoordinateDef("pelvis_tx", "ground_pelvis", "translational", _INF, "pelvis origin along ground X (forward)"),
+    CoordinateDef("pelvis_ty", "ground_pelvis", "translational", _INF, "pelvis origin along ground Y (up): the pelvis height"),
+    CoordinateDef("pelvis_tz", "ground_pelvis", "translational", _INF, "pelvis origin along ground Z (right)"),
     CoordinateDef("hip_flexion", "hip", "rotational", _G2392_HIP, "flexion"),
     CoordinateDef("hip_adduction", "hip", "rotational", _G2392_HIP, "adduction"),
     CoordinateDef("hip_rotation", "hip", "rotational", _G2392_HIP, "internal rotation"),

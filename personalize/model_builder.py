@@ -1,43 +1,61 @@
-"""The personalised engine model from fused subject parameters (issue P1, item 3).
+"""The personalised engine model from fused subject parameters, in OpenSim's conventions (issue P1, item 3; R1).
 
-Every parameter is given in ONE frame: the lab frame of the static trial
-(X forward, Y left, Z up, metres), the subject standing still.  Bodies are
-built in that pose; the standing pose is q = 0 for the ankle, subtalar and
-metatarsophalangeal coordinates, while the pelvis' free joint (its static
-pose), the hips (femur frame relative to the pelvis frame) and the knees
-(tibia frame relative to the femur's knee frame) have anatomical angles
-(Plug-in-Gait/ISB: zero when the frames are aligned), so the standing pose
-carries its own hip and knee angles (``standing_q``; a standing knee is
-typically a few degrees from straight):
+Every parameter is given in ONE frame, the INTERNAL frame of the static
+trial (X = the static pose's facing direction, Y = left, Z = up, metres; the
+subject standing still).  The model is written in OpenSim's conventions:
 
-* ``pelvis``: Plug-in-Gait pelvis frame of the static markers (origin
-  mid-ASIS, x anterior, y left, z up);
-* ``femur_s``: origin knee centre K, z = unit(H - K) (H the fused hip
-  centre), y = the knee axis (pointing left) made orthogonal to z;
-* ``tibia_s``: origin ankle centre A, z = unit(K - A), y as the femur;
-* ``talus_s`` (origin A), ``calcn_s`` (origin on the subtalar axis),
-  ``toes_s`` (origin on the metatarsophalangeal axis): axes of the tibia.
+* ground: Y up, X along the static pose's facing direction, Z to the right,
+  ``x_ground = G x_internal`` with ``G = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]``
+  (`GROUND_FROM_INTERNAL`); gravity -9.80665 m/s² along -Y;
+* body frames as ISB recommends (Wu et al. 2002; X anterior, Y superior,
+  Z to the right):
 
-Joints:
+  - ``pelvis``: origin mid-ASIS, Z = unit(RASI - LASI), X anterior in the
+    ASIS-PSIS plane (the Plug-in-Gait pelvis frame's x), Y = Z x X;
+  - ``femur_s``: origin knee centre K, Y = unit(H - K) (H the fused hip
+    centre), Z = the knee axis (pointing right) made orthogonal to Y;
+  - ``tibia_s``: origin ankle centre A, Y = unit(K - A), Z as the femur's;
+  - ``talus_s`` (origin A), ``calcn_s`` (origin on the subtalar axis),
+    ``toes_s`` (origin on the metatarsophalangeal axis): axes of the tibia;
 
-* hip: three body-fixed rotations (flexion about -y, adduction about ±x,
-  internal rotation about ±z) from the pelvis axes to the femur axes, about
-  the fused hip centre;
-* knee: a correlative knee (Pronost et al. 2010): rotations flexion about
-  the fused knee axis Y_k, ab/adduction about ±X_k, rotation about ±Z_k
-  (Z_k the femur's long axis made orthogonal to Y_k), from the femur's knee
-  frame (Y_k, Z_k) to the tibia frame, and translations knee_tx (anterior),
-  knee_ty (proximal), knee_tz (lateral) that are a linear law of the three
-  rotations (`kinematics.mechanisms.correlative.CorrelativeLaw`, enforced as linear
-  couplings).  A law's constant term is the translation at the STANDING
-  pose (zero: the fused knee centre is the standing one); the builder
-  re-expresses it in the model's coordinates, c_0' = c_0 - S q_standing;
-* ankle, subtalar and metatarsophalangeal: revolute joints about the fused
-  axes (dorsiflexion, inversion, extension positive); the mtp coordinate is
-  locked unless the toes carry markers.
+* coordinates with gait2392's names, axes and signs
+  (``subject01_simbody_adjusted.osim`` read with the opensim API):
 
-Markers are placed from the static trial: offset = R_bᵀ (m - o_b) with m the
-median static position and (o_b, R_b) the body's static pose.
+  - ``ground_pelvis``: rotation1 ``pelvis_tilt`` about ground Z, rotation2
+    ``pelvis_list`` about X, rotation3 ``pelvis_rotation`` about Y (body-fixed
+    Z-X-Y), translations ``pelvis_tx/ty/tz`` along ground X, Y, Z, so that
+    ``pelvis_ty`` is the height of the pelvis origin;
+  - hip: flexion about the pelvis-side Z, adduction about ±X, internal
+    rotation about ±Y (``+`` right, ``-`` left, gait2392's signs), about the
+    fused hip centre, from the pelvis axes to the femur axes;
+  - knee: a correlative knee (Pronost et al. 2010) with six coordinates,
+    flexion about -Z_k (``knee_flexion`` positive in flexion: the deliberate
+    difference from gait2392's ``knee_angle``, see `lowerlimb.topology`),
+    ab/adduction about ±X_k, rotation about ±Y_k (Z_k the fused knee axis to
+    the right, Y_k the femur's long axis made orthogonal to it), from the
+    femur's knee frame to the tibia frame, and translations knee_tx
+    (anterior, X_k), knee_ty (proximal, Y_k), knee_tz (lateral, ±Z_k) that are
+    a linear law of the three rotations
+    (`kinematics.mechanisms.correlative.CorrelativeLaw`, enforced as linear
+    couplings; OpenSim CoordinateCouplerConstraints in ``model.osim``).  A
+    law's constant term is the translation at the STANDING pose (zero: the
+    fused knee centre is the standing one); the builder re-expresses it in
+    the model's coordinates, c_0' = c_0 - S q_standing;
+  - ankle, subtalar and metatarsophalangeal: revolute joints about the fused
+    axes with gait2392's signs (dorsiflexion, inversion, toe extension
+    positive on both sides); the mtp coordinate is locked unless the toes
+    carry markers.
+
+The hip and knee angles are anatomical (zero when the frames are aligned),
+so the standing pose carries its own (``standing_q``; a standing knee is
+typically a few degrees from straight); a subject standing upright facing +X
+has every coordinate but the pelvis translations near zero.  The leg's
+rotational coordinates are clamped to their `lowerlimb.topology` ranges
+(IK keeps them inside, as OpenSim's IK does for clamped coordinates).
+
+`PersonalModel.body_frames` stays in the internal frame:
+x_internal = o + R x_body.  Markers are placed from the static trial:
+offset = Rᵀ (m - o) with m the median static position.
 
 Mass properties: de Leva (1996, J Biomech 29:1223) segment mass fractions,
 centre-of-mass positions and radii of gyration of the adult male, scaled by
@@ -55,16 +73,25 @@ from scipy.spatial.transform import Rotation
 from kinematics.mechanisms.correlative import CorrelativeLaw
 from lowerlimb.errors import InputError
 from lowerlimb.geometry import frame_yz, frame_zy, unit
-from lowerlimb.topology import (JOINT_COORDINATES, KNEE_ROTATIONS, KNEE_TRANSLATIONS, PELVIS_TRANSLATIONS, coordinate_def,
-                                leg_coordinates, sided)
+from lowerlimb.topology import (GROUND_JOINT, JOINT_COORDINATES, KNEE_ROTATIONS, KNEE_TRANSLATIONS, PELVIS_ROTATIONS,
+                                PELVIS_TRANSLATIONS, coordinate_def, leg_coordinates, sided)
 from kinematics.multibody.functions import Linear
 from kinematics.multibody.joints import CustomJoint, Transform, TransformAxis, free, revolute
 from kinematics.multibody.model import Body, Coordinate, Marker, Model
 
 __all__ = ["SideParameters", "SubjectParameters", "PersonalModel", "build_personal_model", "default_knee_law",
-           "MARKER_BODIES", "DE_LEVA", "save_model_json", "save_model_osim", "write_meshes"]
+           "MARKER_BODIES", "DE_LEVA", "GROUND_FROM_INTERNAL", "GRAVITY", "trial_in_ground", "save_model_json",
+           "save_model_osim", "write_meshes"]
 
 _X, _Y, _Z = np.eye(3)
+
+#: OpenSim ground from the internal frame: x_ground = G x_internal (X forward, Y up, Z right)
+GROUND_FROM_INTERNAL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+#: gravity in ground (m/s², standard gravity along -Y)
+GRAVITY = np.array([0.0, -9.80665, 0.0])
+#: ISB axes (X anterior, Y up, Z right) of a frame given by its Plug-in-Gait axes (x anterior, y left, z up):
+#: R_isb = R_pig @ _PIG_TO_ISB
+_PIG_TO_ISB = GROUND_FROM_INTERNAL.T
 
 #: marker name (without side letter) -> segment kind; pelvis markers keep their full names
 MARKER_BODIES = {
@@ -94,7 +121,7 @@ DEFAULT_KNEE_SLOPES = 1e-3 * np.array([[4.0, 0.0, 0.0], [-2.0, 0.0, 0.0], [0.0, 
 
 @dataclass(frozen=True)
 class SideParameters:
-    """One leg's joint parameters, static-trial lab frame (m, unit vectors; any sense for axes).
+    """One leg's joint parameters, internal frame of the static trial (m, unit vectors; any sense for axes).
 
     hip : (3,) hip centre; knee : (3,) knee centre; knee_axis : (3,)
     ankle : (3,) ankle centre; ankle_axis : (3,)
@@ -122,9 +149,10 @@ class SideParameters:
 
 @dataclass(frozen=True)
 class SubjectParameters:
-    """Everything the model builder needs, static-trial lab frame (X forward, Y left, Z up; m).
+    """Everything the model builder needs, internal frame of the static trial (X facing, Y left, Z up; m).
 
-    pelvis_origin : (3,), pelvis_rotation : (3, 3) Plug-in-Gait pelvis frame (columns x, y, z)
+    pelvis_origin : (3,), pelvis_rotation : (3, 3) Plug-in-Gait pelvis frame (columns x anterior, y left, z up;
+        the builder turns it into the ISB pelvis frame)
     sides : dict 'r'/'l' -> SideParameters
     markers : dict marker name -> (3,) median static position
     mass : kg; height : m
@@ -149,11 +177,14 @@ class SubjectParameters:
 class PersonalModel:
     """The built model and what it was built from.
 
-    model : kinematics.multibody.model.Model (ground = static lab frame, Z up)
+    model : kinematics.multibody.model.Model in OpenSim's ground (X forward, Y up, Z right; gravity along -Y)
     standing_q : (n_q,) coordinates of the static pose
-    body_frames : dict body -> (origin (3,), rotation (3, 3)) static lab pose
-    parameters : SubjectParameters
+    body_frames : dict body -> (origin (3,), rotation (3, 3)), the body's static pose in the INTERNAL frame
+        (x_internal = origin + rotation @ x_body; ISB body axes)
+    parameters : SubjectParameters (internal frame)
     knee_laws : dict side -> CorrelativeLaw
+    G : (3, 3) ground from internal, x_ground = G x_internal (`GROUND_FROM_INTERNAL`); map every marker trial
+        of the internal frame by it (`trial_in_ground`) before IK on `model`
     """
 
     model: Model
@@ -161,6 +192,12 @@ class PersonalModel:
     body_frames: dict
     parameters: SubjectParameters
     knee_laws: dict
+    G: np.ndarray = field(default_factory=lambda: GROUND_FROM_INTERNAL.copy())
+
+
+def trial_in_ground(pm: PersonalModel, trial):
+    """A marker trial of the internal frame (`kinematics.io.markers.MarkerTrial`) in the model's ground (x' = G x)."""
+    return replace(trial, positions=np.asarray(trial.positions, float) @ np.asarray(pm.G, float).T)
 
 
 def default_knee_law(side: str) -> CorrelativeLaw:
@@ -187,9 +224,9 @@ def _body_of_marker(name: str, sides) -> str | None:
 
 
 def _inertia(mass: float, length: float, radii) -> np.ndarray:
-    """Principal inertia (kg m²) in body axes x anterior (transverse), y medio-lateral (sagittal), z long."""
+    """Principal inertia (kg m²) in ISB body axes: X anterior (transverse), Y long, Z medio-lateral (sagittal)."""
     r_sag, r_tr, r_long = radii
-    return mass * length**2 * np.diag([r_tr**2, r_sag**2, r_long**2])
+    return mass * length**2 * np.diag([r_tr**2, r_long**2, r_sag**2])
 
 
 def build_personal_model(p: SubjectParameters) -> PersonalModel:
@@ -200,14 +237,15 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
     InputError
         Degenerate geometry (coincident centres, an axis along a bone) or no markers.
     """
+    G = GROUND_FROM_INTERNAL
     o_p = np.asarray(p.pelvis_origin, float)
-    R_p = np.asarray(p.pelvis_rotation, float)
+    R_p = np.asarray(p.pelvis_rotation, float) @ _PIG_TO_ISB         # ISB pelvis axes (internal frame)
     frames = {"pelvis": (o_p, R_p)}
     laws = {}
-    # the free joint's rotations in its ZXY sequence (heading, list, tilt about the Z-up lab axes)
+    # gait2392's ground_pelvis: tilt about ground Z, list about X, rotation about Y (body-fixed), then X, Y, Z
     coords = [Coordinate(n, coordinate_def(n).kind, range=coordinate_def(n).range)
-              for n in ("pelvis_rotation", "pelvis_list", "pelvis_tilt") + PELVIS_TRANSLATIONS]
-    joints = [free("ground_pelvis", "ground", "pelvis", [c.name for c in coords], sequence="ZXY")]
+              for n in PELVIS_ROTATIONS + PELVIS_TRANSLATIONS]
+    joints = [free(GROUND_JOINT, "ground", "pelvis", [c.name for c in coords], sequence="ZXY")]
     length_pelvis = 0.0833 * p.height                       # de Leva lower-trunk length / stature
     bodies = [Body("pelvis", DE_LEVA["pelvis"][0] * p.mass, np.zeros(3),
                    _inertia(DE_LEVA["pelvis"][0] * p.mass, length_pelvis, DE_LEVA["pelvis"][2]))]
@@ -228,14 +266,14 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         H, K, A = (np.asarray(v, float) for v in (sp.hip, sp.knee, sp.ankle))
         if min(np.linalg.norm(H - K), np.linalg.norm(K - A)) < 0.05:
             raise InputError("model", f"side {s}: hip, knee and ankle centres are closer than 5 cm")
-        right = -R_p[:, 1]                                  # subject's right in the static lab
-        k_left = -unit(sp.knee_axis, where="model") if np.dot(sp.knee_axis, right) > 0 else unit(sp.knee_axis, where="model")
+        right = R_p[:, 2]                                   # subject's right (internal frame)
+        k_right = unit(sp.knee_axis, where="model") if np.dot(sp.knee_axis, right) > 0 else -unit(sp.knee_axis, where="model")
         a_right = unit(sp.ankle_axis, where="model") if np.dot(sp.ankle_axis, right) > 0 else -unit(sp.ankle_axis, where="model")
         fwd = R_p[:, 0]
         st = unit(sp.subtalar_axis, where="model") if np.dot(sp.subtalar_axis, fwd) > 0 else -unit(sp.subtalar_axis, where="model")
         m_right = unit(sp.mtp_axis, where="model") if np.dot(sp.mtp_axis, right) > 0 else -unit(sp.mtp_axis, where="model")
-        R_f = frame_zy(H - K, k_left, where="model")
-        R_t = frame_zy(K - A, k_left, where="model")
+        R_f = frame_yz(H - K, k_right, where="model")
+        R_t = frame_yz(K - A, k_right, where="model")
         sub = np.asarray(sp.subtalar, float)
         sub = sub + np.dot(A - sub, st) * st                # the subtalar axis point nearest the ankle centre
         frames.update({f"femur_{s}": (K, R_f), f"tibia_{s}": (A, R_t), f"talus_{s}": (A, R_t),
@@ -244,7 +282,9 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         kc = [sided(c, s) for c in KNEE_ROTATIONS]
         kt = [sided(c, s) for c in KNEE_TRANSLATIONS]
         toes_tracked = any(n[0].lower() == s for n in toes_markers)
-        coords += [Coordinate(n, d.kind, range=d.range, locked=(d.joint == "mtp" and not toes_tracked))
+        # the leg's rotations are clamped to their ranges (IK keeps them inside); the knee translations follow the law
+        coords += [Coordinate(n, d.kind, range=d.range, locked=(d.joint == "mtp" and not toes_tracked),
+                              clamped=d.kind == "rotational")
                    for n, d in leg_coordinates(s)]
         L_th, L_sh = float(np.linalg.norm(H - K)), float(np.linalg.norm(K - A))
         L_ft = float(np.linalg.norm(np.asarray(sp.mtp, float) - A)) * 1.35   # heel-to-toe ~ 1.35 x ankle-to-mtp
@@ -262,20 +302,20 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         # standing pose has its own hip angles (e.g. flexion = the pelvic tilt of a subject with a vertical femur)
         joints.append(CustomJoint(
             f"hip_{s}", "pelvis", f"femur_{s}", tuple(hc), offset("pelvis", H, R_p), offset(f"femur_{s}", H, R_f),
-            rotations=(ax(-_Y, hc[0]), ax(sg * _X, hc[1]), ax(sg * _Z, hc[2])), kind_name="custom"))
+            rotations=(ax(_Z, hc[0]), ax(sg * _X, hc[1]), ax(sg * _Y, hc[2])), kind_name="custom"))
         # knee: flexion exactly about the fused axis; child frame = the tibia frame, so that the standing angles
         # are the anatomical ones (flexion and varus between the femoral and tibial mechanical axes)
-        R_k = frame_yz(k_left, H - K, where="model")
+        R_k = frame_zy(k_right, H - K, where="model")
         knee_frames[s] = R_k
         laws[s] = sp.knee_law or default_knee_law(s)
         # the law's standing translation (its constant term; e.g. a fused intercept) moves the tibia's joint point
         # from the femur's, so that the tibia stays at its static pose in the standing pose
         t_st = np.asarray(laws[s].coefficients, float)[:, -1]
-        K_tib = K + R_k @ np.array([t_st[0], -sg * t_st[2], t_st[1]])
+        K_tib = K + R_k @ np.array([t_st[0], t_st[1], sg * t_st[2]])
         joints.append(CustomJoint(
             f"knee_{s}", f"femur_{s}", f"tibia_{s}", tuple(kc + kt), offset(f"femur_{s}", K, R_k), offset(f"tibia_{s}", K_tib, R_t),
-            rotations=(ax(_Y, kc[0]), ax(sg * _X, kc[1]), ax(sg * _Z, kc[2])),
-            translations=(ax(_X, kt[0]), ax(_Z, kt[1]), ax(-sg * _Y, kt[2])), kind_name="custom"))
+            rotations=(ax(-_Z, kc[0]), ax(sg * _X, kc[1]), ax(sg * _Y, kc[2])),
+            translations=(ax(_X, kt[0]), ax(_Y, kt[1]), ax(sg * _Z, kt[2])), kind_name="custom"))
         joints.append(revolute(f"ankle_{s}", f"tibia_{s}", f"talus_{s}", f"ankle_angle_{s}", axis=R_t.T @ a_right,
                                parent_offset=offset(f"tibia_{s}", A, R_t), child_offset=offset(f"talus_{s}", A, R_t)))
         st_inv = st if s == "r" else -st                    # inversion positive on both sides
@@ -292,14 +332,13 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         markers.append(Marker(n, body, local(body, x)))
     if not markers:
         raise InputError("model", "no static marker could be placed on the model")
-    base = Model(tuple(bodies), tuple(joints), tuple(coords), tuple(markers), gravity=np.array([0.0, 0.0, -9.80665]),
-                 name=p.name)
+    base = Model(tuple(bodies), tuple(joints), tuple(coords), tuple(markers), gravity=GRAVITY.copy(), name=p.name)
     knee_q = {}
     for s in p.sides:
-        # static knee angles: R_kᵀ R_t = Ry(flexion) Rx(±adduction) Rz(±rotation), body-fixed
+        # static knee angles: R_kᵀ R_t = Rz(-flexion) Rx(±adduction) Ry(±rotation), body-fixed
         sg = 1.0 if s == "r" else -1.0
-        phi, psi, chi = Rotation.from_matrix(knee_frames[s].T @ frames[f"tibia_{s}"][1]).as_euler("YXZ")
-        knee_q[s] = np.array([phi, sg * psi, sg * chi])
+        phi, psi, chi = Rotation.from_matrix(knee_frames[s].T @ frames[f"tibia_{s}"][1]).as_euler("ZXY")
+        knee_q[s] = np.array([-phi, sg * psi, sg * chi])
         law = laws[s]
         C = np.array(law.coefficients, float)
         C[:, -1] = C[:, -1] - C[:, :-1] @ knee_q[s]        # the law's constant term is the standing translation
@@ -311,14 +350,15 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
     model = base.with_couplings(coupling.over(base.coordinate_names)) if coupling is not None else base
     q0 = np.zeros(model.n_q)
     ix = model.coordinate_index
-    q0[[ix("pelvis_rotation"), ix("pelvis_list"), ix("pelvis_tilt")]] = Rotation.from_matrix(R_p).as_euler("ZXY")
-    q0[[ix("pelvis_tx"), ix("pelvis_ty"), ix("pelvis_tz")]] = o_p
+    # the pelvis' static pose in ground: G R_p = Rz(tilt) Rx(list) Ry(rotation), origin G o_p
+    q0[[ix(n) for n in PELVIS_ROTATIONS]] = Rotation.from_matrix(G @ R_p).as_euler("ZXY")
+    q0[[ix(n) for n in PELVIS_TRANSLATIONS]] = G @ o_p
     for s in p.sides:
-        # static hip angles: R_pᵀ R_f = Ry(-flexion) Rx(±adduction) Rz(±rotation), body-fixed
+        # static hip angles: R_pᵀ R_f = Rz(flexion) Rx(±adduction) Ry(±rotation), body-fixed
         sg = 1.0 if s == "r" else -1.0
         R_f = frames[f"femur_{s}"][1]
-        phi, psi, chi = Rotation.from_matrix(R_p.T @ R_f).as_euler("YXZ")
-        q0[[ix(sided(c, s)) for c in JOINT_COORDINATES["hip"]]] = (-phi, sg * psi, sg * chi)
+        phi, psi, chi = Rotation.from_matrix(R_p.T @ R_f).as_euler("ZXY")
+        q0[[ix(sided(c, s)) for c in JOINT_COORDINATES["hip"]]] = (phi, sg * psi, sg * chi)
         q0[[ix(sided(c, s)) for c in KNEE_ROTATIONS]] = knee_q[s]
         law = laws[s]
         q0[[ix(n) for n in law.dependent]] = law.predict(knee_q[s][None])[0]
@@ -326,14 +366,14 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
     coords_def = tuple(Coordinate(c.name, c.kind, float(q0[i]), c.range, c.locked, c.clamped)
                        for i, c in enumerate(model.coordinates))
     model = model.replace(coordinates=coords_def)
-    return PersonalModel(model, q0, frames, p, laws)
+    return PersonalModel(model, q0, frames, p, laws, G.copy())
 
 
 # --------------------------------------------------------------------------- export
 def write_meshes(pm: PersonalModel, meshes: dict, folder: Path) -> dict:
     """Write bone meshes in their body frames as binary STL (metres) into `folder`.
 
-    meshes : dict bone name -> (trimesh.Trimesh in the static lab frame, body name)
+    meshes : dict bone name -> (trimesh.Trimesh in the internal frame of the static trial, body name)
 
     Returns dict bone -> (body, relative file name).
     """
@@ -385,11 +425,12 @@ def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = Non
 def model_json(pm: PersonalModel, mesh_files: dict | None = None) -> dict:
     """JSON description of the model (SI units, frames stated)."""
     m = pm.model
+    G = np.asarray(pm.G, float)
     bodies = []
     for b in m.bodies[1:]:
         o, R = pm.body_frames[b.name]
         bodies.append({"name": b.name, "mass": b.mass, "com": b.com.tolist(), "inertia": b.inertia.tolist(),
-                       "static_origin": o.tolist(), "static_rotation": R.tolist(),
+                       "static_origin": (G @ o).tolist(), "static_rotation": (G @ R).tolist(),
                        "meshes": [f for bone, (body, f) in sorted((mesh_files or {}).items()) if body == b.name]})
     joints = []
     for j in m.joints:
@@ -401,7 +442,13 @@ def model_json(pm: PersonalModel, mesh_files: dict | None = None) -> dict:
                        "translation_axes": [a.axis.tolist() for a in getattr(j, "translations", ())]})
     return {
         "units": "m, kg, kg m^2, rad",
-        "frame": "ground = lab frame of the static trial (X forward, Y left, Z up); body offsets in body frames",
+        "frame": "OpenSim ground (X = the static pose's facing direction, Y up, Z right; gravity along -Y); "
+                 "ISB body frames (X anterior, Y superior, Z right); body offsets in body frames; static_origin and "
+                 "static_rotation: each body's pose in ground at the standing pose",
+        "ground_from_internal": G.tolist(),
+        "internal_frame": "the static trial's internal frame (X facing, Y left, Z up) of summary.json and "
+                          "'uncertainty': x_ground = ground_from_internal @ x_internal",
+        "gravity": m.gravity.tolist(),
         "name": m.name,
         "mass_properties": "de Leva (1996) male segment fractions scaled by the subject's mass and segment lengths",
         "bodies": bodies, "joints": joints,
@@ -416,7 +463,7 @@ def model_json(pm: PersonalModel, mesh_files: dict | None = None) -> dict:
 
 
 def _uncertainty_json(p: SubjectParameters) -> dict:
-    """The joint parameters the model was built from with their stated uncertainty (static lab frame)."""
+    """The joint parameters the model was built from with their stated uncertainty (internal frame)."""
     joints = {}
     for s, sp in p.sides.items():
         for j in ("hip", "knee", "ankle"):
@@ -429,7 +476,8 @@ def _uncertainty_json(p: SubjectParameters) -> dict:
                     e["axis_sd_deg"] = float(sp.axis_sd_deg[j])
             joints[f"{j}_{s}"] = e
     return {"units": "centre m, centre_cov m^2, axis unit vector, axis_sd_deg deg",
-            "frame": "lab frame of the static trial (ground)", "joints": joints}
+            "frame": "internal frame of the static trial (X facing, Y left, Z up; x_ground = ground_from_internal "
+                     "@ x_internal)", "joints": joints}
 
 
 def save_model_json(pm: PersonalModel, path: Path, mesh_files: dict | None = None) -> Path:

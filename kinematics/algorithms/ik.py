@@ -30,7 +30,18 @@ matter.  Finally a frame whose solution jumps away from a neighbour's
 (another local minimum, e.g. an angle 2 pi away) is re-solved from that
 neighbour, keeping the lower cost, and the repair walks on frame by frame
 while it keeps finding a markedly lower minimum (warm starts chain a wrong
-minimum over the following frames).
+minimum over the following frames).  The first frame's root rotations (the
+pelvis) are taken on their canonical Cardan branch (middle angle within +-90
+deg: a subject facing back has a heading of 180 deg, not a pelvis tilted and
+listed by 180 deg).  Unbounded rotations that only turn a body (no coupling, identity
+axis functions: e.g. the pelvis' tilt, list and rotation) are then unwrapped
+over the frames, the first solved frame's value brought into (-pi, pi], so that
+a trial's angles are continuous and free of 2 pi branch offsets; bounded
+coordinates stay inside their ranges (clamped ones in the solve itself).
+
+Coordinates the markers cannot determine in some frame (a zero singular value
+of the Jacobian at the solution) are named in ``undetermined_coordinates``:
+the coordinates that the null-space directions move.
 """
 from __future__ import annotations
 
@@ -50,7 +61,7 @@ from kinematics.multibody.model import Model
 from lowerlimb.errors import InputError
 from lowerlimb.geometry import kabsch_rotation
 
-__all__ = ["IKResult", "solve_ik", "solve_pose", "check_trial_scale"]
+__all__ = ["IKResult", "solve_ik", "solve_pose", "check_trial_scale", "unwrap_rotations"]
 
 
 # ----------------------------------------------------------------------------- result
@@ -74,6 +85,8 @@ class IKResult:
     determined : (F,) bool, the markers present (and coordinate tasks) determine
         every free coordinate (Jacobian of full rank at the solution); where
         False some coordinates just kept their warm-start value
+    undetermined_coordinates : tuple of str, the coordinates moved by the Jacobian's null space in
+        some frame (those that kept their warm-start value where `determined` is False)
     """
 
     coordinates: tuple[str, ...]
@@ -90,6 +103,7 @@ class IKResult:
     seconds: float = 0.0
     determined: np.ndarray | None = None
     residuals: np.ndarray | None = None
+    undetermined_coordinates: tuple[str, ...] = ()
 
 
 # ----------------------------------------------------------------------------- input checks
@@ -274,6 +288,122 @@ def _rigid_start(model: Model, q_default: np.ndarray, names, y, ok, w) -> np.nda
     return q
 
 
+def _unwrappable_rotations(model: Model) -> list[int]:
+    """Indices of unbounded rotational coordinates (range over two turns) whose 2 pi shifts leave every pose unchanged.
+
+    Such a coordinate drives only rotation axes through the identity function
+    and is neither coupled (linear rows, non-linear couplers) nor locked.
+    """
+    from kinematics.multibody.joints import CustomJoint, is_identity_function
+
+    coupled = set()
+    if model.couplings is not None:
+        M = np.asarray(model.couplings.matrix, float)
+        coupled |= {n for j, n in enumerate(model.couplings.coordinates) if np.any(M[:, j] != 0)}
+    for cp in model.couplers:
+        coupled |= {cp.dependent, *cp.independent}
+    ok: dict[str, bool] = {}
+    for j in model.joints:
+        if not isinstance(j, CustomJoint):
+            for n in j.coordinates:
+                ok[n] = False
+            continue
+        for a in j.rotations:
+            for n in a.coordinates:
+                ok[n] = ok.get(n, True) and is_identity_function(a.function) and len(a.coordinates) == 1
+        for a in j.translations:
+            for n in a.coordinates:
+                ok[n] = False
+    out = []
+    for i, c in enumerate(model.coordinates):
+        lo, hi = c.range
+        # ranges wider than two turns bound nothing a 2 pi shift could break (OpenSim writes unbounded as +-1000)
+        if (c.kind == "rotational" and ok.get(c.name, False) and c.name not in coupled and not c.locked
+                and hi - lo > 4.0 * np.pi):
+            out.append(i)
+    return out
+
+
+def unwrap_rotations(model: Model, q: np.ndarray) -> np.ndarray:
+    """`q` (F, n_q) with each unbounded free rotation (`_unwrappable_rotations`) continuous over the frames.
+
+    The first finite value is brought into (-pi, pi] and the rest unwrapped (numpy.unwrap over the finite
+    frames): the poses are the same, the angles free of 2 pi jumps and offsets.
+    """
+    q = np.array(q, float, copy=True)
+    for i in _unwrappable_rotations(model):
+        col = q[:, i]
+        fin = np.isfinite(col)
+        if not fin.any():
+            continue
+        v = np.unwrap(col[fin])
+        v -= 2.0 * np.pi * np.round(v[0] / (2.0 * np.pi))
+        if v[0] <= -np.pi:
+            v += 2.0 * np.pi
+        lo, hi = model.coordinates[i].range
+        if np.all((v >= lo) & (v <= hi)):
+            col[fin] = v
+    return q
+
+
+def _canonical_root(model: Model, q: np.ndarray) -> np.ndarray:
+    """`q` (n_q,) with the root joint's three Cardan angles on their canonical branch (middle angle in
+    [-pi/2, pi/2], the others in (-pi, pi]): the same pose.
+
+    A Cardan sequence has two angle triples per orientation, (a, b, c) and (a + pi, pi - b, c + pi); a subject
+    facing back (heading near 180 deg) is as well described by a pelvis tilted and listed by 180 deg.  Only for
+    a root with three identity rotations about orthonormal axes whose coordinates `_unwrappable_rotations`
+    allows to change; otherwise `q` unchanged.
+    """
+    from kinematics.multibody.joints import CustomJoint, is_identity_function, rotation_about
+
+    q = np.array(q, float, copy=True)
+    if not model.joints:
+        return q
+    root = model.joints[0]
+    if not isinstance(root, CustomJoint) or len(root.rotations) != 3:
+        return q
+    if not all(is_identity_function(a.function) and len(a.coordinates) == 1 for a in root.rotations):
+        return q
+    idx = [model.coordinate_index(a.coordinates[0]) for a in root.rotations]
+    if not set(idx) <= set(_unwrappable_rotations(model)):
+        return q
+    A = np.array([a.axis for a in root.rotations], float).T
+    if not np.allclose(A.T @ A, np.eye(3), atol=1e-9):
+        return q
+    R = np.eye(3)
+    for a, i in zip(root.rotations, idx):
+        R = R @ rotation_about(a.axis, q[i])
+    sgn = 1.0
+    if np.linalg.det(A) < 0:
+        A = A.copy()
+        A[:, 2] *= -1.0
+        sgn = -1.0
+    th = matrix_to_euler_xyz(A.T @ R @ A)
+    th[2] *= sgn
+    q[idx] = th
+    return q
+
+
+def _null_coordinates(model: Model, cmap, J: np.ndarray, z: np.ndarray, rtol: float = 1e-8,
+                      share: float = 0.1) -> set[str]:
+    """Coordinates moved (|dq_i| > `share` max |dq|) by the null-space directions of the Jacobians `J` (n, r, n_z)."""
+    names: set[str] = set()
+    if not cmap.n_z or not len(J):
+        return names
+    _, sv, vt = np.linalg.svd(J, full_matrices=True)
+    E = cmap.jacobian(cmap.expand(z))                                         # (n, n_q, n_z)
+    for k in range(len(J)):
+        s_k = np.zeros(cmap.n_z)
+        s_k[:sv.shape[1]] = sv[k]
+        null = vt[k][s_k <= rtol * max(s_k[0], 1e-300)]
+        for v in null:
+            dq = np.abs(E[k] @ v)
+            if dq.max() > 0:
+                names |= {model.coordinates[i].name for i in np.flatnonzero(dq > share * dq.max())}
+    return names
+
+
 def solve_pose(model: Model, targets, weights=None, q0=None, markers=None, **kw) -> tuple[np.ndarray, float]:
     """IK of one frame: q (n_q,) and the RMS marker error (m) for targets (M,3)."""
     names = model.marker_names if markers is None else tuple(markers)
@@ -372,6 +502,8 @@ def solve_ik(model: Model, trial: MarkerTrial, marker_weights: Mapping[str, floa
             if c2 < c1:
                 z, cv = z2, cv2
             it = it + it2
+    # the root's heading on its canonical Cardan branch (the warm starts then keep it)
+    z = cmap.project(_canonical_root(model, cmap.expand(z)[0]))
     Zs[f0], its[f0], conv[f0] = z[0], it[0], cv[0]
     rest = frames[1:]
     if progress is not None:
@@ -389,7 +521,7 @@ def solve_ik(model: Model, trial: MarkerTrial, marker_weights: Mapping[str, floa
     repair_jumps(prob, Zs, its, conv, frames, Y, ok_all, tolerance, first_frame_iterations)
     Zs[frames] = prob.wrap(Zs[frames])
     Q = np.full((F, model.n_q), np.nan)
-    Q[frames] = cmap.expand(Zs[frames])
+    Q[frames] = unwrap_rotations(model, cmap.expand(Zs[frames]))
     # Final errors (unweighted distances) for reporting.
     Xall = marker_positions(model, Q[frames], use)
     err = np.full((F, len(use)), np.nan)
@@ -405,14 +537,22 @@ def solve_ik(model: Model, trial: MarkerTrial, marker_weights: Mapping[str, floa
     mx[cnt == 0] = np.nan
     cost = np.full(F, np.nan)
     determined = np.zeros(F, bool)
+    undetermined: set[str] = set()
     for s0 in range(0, frames.size, 256):           # chunks bound the Jacobian's memory on long trials
         fr = frames[s0:s0 + 256]
         r, J, _, _ = prob.evaluate(Zs[fr], Y[fr], ok_all[fr], jac=True)
         cost[fr] = np.einsum("ni,ni->n", r, r)
         if cmap.n_z:
             sv = np.linalg.svd(J, compute_uv=False)
+            if J.shape[1] < cmap.n_z:
+                sv = np.concatenate([sv, np.zeros((len(fr), cmap.n_z - J.shape[1]))], axis=1)
             determined[fr] = sv[:, -1] > 1e-8 * np.maximum(sv[:, 0], 1e-300)
+            bad = np.flatnonzero(~determined[fr])
+            # a null space usually repeats over a trial: name its coordinates from a few frames of each chunk
+            pick = bad[np.unique(np.linspace(0, bad.size - 1, min(bad.size, 8)).astype(int))] if bad.size else bad
+            undetermined |= _null_coordinates(model, cmap, J[pick], Zs[fr][pick])
         else:
             determined[fr] = True
     return IKResult(model.coordinate_names, np.asarray(trial.time, float), Q, tuple(use), err, rms, mx, its, conv,
-                    solvable, cost, _time.perf_counter() - t_start, determined, resid)
+                    solvable, cost, _time.perf_counter() - t_start, determined, resid,
+                    tuple(c for c in model.coordinate_names if c in undetermined))

@@ -1,4 +1,4 @@
-"""OpenSim ``InverseKinematicsTool`` setup files: marker weights, coordinate tasks, time range."""
+"""OpenSim ``InverseKinematicsTool`` setup files: marker weights, coordinate tasks, time range (read and write)."""
 from __future__ import annotations
 
 import os
@@ -9,7 +9,7 @@ from typing import Mapping
 from kinematics.io.opensim_io import read_xml
 from lowerlimb.errors import InputError
 
-__all__ = ["CoordinateTask", "IKSetup", "read_ik_setup"]
+__all__ = ["CoordinateTask", "IKSetup", "read_ik_setup", "write_ik_setup"]
 
 
 @dataclass(frozen=True)
@@ -77,3 +77,58 @@ def read_ik_setup(path: str | os.PathLike) -> IKSetup:
     acc = float((tool.findtext("accuracy") or "1e-5").strip())
     return IKSetup(weights, tuple(ctasks), time_range, acc, (tool.findtext("model_file") or "").strip() or None,
                    (tool.findtext("marker_file") or "").strip() or None, tuple(disabled), os.fspath(path))
+
+
+def write_ik_setup(path: str | os.PathLike, *, model_file: str, marker_file: str, output_motion_file: str,
+                   marker_weights: Mapping[str, float], time_range: tuple[float, float], accuracy: float = 1e-5,
+                   coordinate_tasks=(), name: str = "ik") -> Path:
+    """Write an OpenSim ``InverseKinematicsTool`` setup with the opensim API (its own printer, so OpenSim reads it).
+
+    File names are written as given (relative names resolve against the setup file's folder, as OpenSim does);
+    constraints are strictly enforced (``constraint_weight`` Infinity); marker errors are reported.
+
+    Parameters
+    ----------
+    marker_weights : marker -> weight of its IKMarkerTask (markers left out are not tracked)
+    time_range : (start, end) s
+    coordinate_tasks : CoordinateTask sequence (value None: the model default)
+    """
+    from lowerlimb.atomic import atomic_path
+
+    from kinematics.io.opensim_io import import_opensim
+
+    osim = import_opensim()
+    path = Path(path)
+    tool = osim.InverseKinematicsTool()
+    tool.setName(name)
+    tool.set_model_file(model_file)
+    tool.setMarkerDataFileName(marker_file)
+    tool.setOutputMotionFileName(output_motion_file)
+    tool.set_results_directory(".")
+    tool.setStartTime(float(time_range[0]))
+    tool.setEndTime(float(time_range[1]))
+    tool.set_accuracy(float(accuracy))
+    tool.set_constraint_weight(float("inf"))
+    tool.set_report_errors(True)
+    tasks = tool.upd_IKTaskSet()
+    for m, w in marker_weights.items():
+        t = osim.IKMarkerTask()
+        t.setName(m)
+        t.setApply(True)
+        t.setWeight(float(w))
+        tasks.cloneAndAppend(t)
+    for c in coordinate_tasks:
+        t = osim.IKCoordinateTask()
+        t.setName(c.name)
+        t.setApply(True)
+        t.setWeight(float(c.weight))
+        if c.value is None:
+            t.setValueType(osim.IKCoordinateTask.DefaultValue)
+        else:
+            t.setValueType(osim.IKCoordinateTask.ManualValue)
+            t.setValue(float(c.value))
+        tasks.cloneAndAppend(t)
+    with atomic_path(path) as tmp:
+        if not tool.printToXML(os.fspath(tmp)):
+            raise InputError(path, "OpenSim could not write the IK setup")
+    return path

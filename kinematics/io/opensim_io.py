@@ -31,7 +31,7 @@ from kinematics.multibody.model import GROUND, Body, Coordinate, Marker, Model
 
 __all__ = ["load_osim", "save_osim", "to_opensim", "check_osim_file", "read_xml", "import_opensim", "open_osim_model",
            "write_osim", "vec_from_opensim", "transform_from_opensim", "function_from_opensim", "function_to_opensim",
-           "add_coupler_constraint"]
+           "add_coupler_constraint", "opensim_inverse_kinematics", "run_opensim_ik_tool"]
 
 _E = np.eye(3)
 
@@ -542,3 +542,48 @@ def opensim_inverse_kinematics(model_path: str | os.PathLike, trc_path: str | os
     mnames = [solver.getMarkerNameForIndex(i) for i in range(errs.shape[1])]
     return {"time": times, "q": Q, "coordinates": names, "markers": mnames, "marker_errors": errs,
             "rms": np.sqrt(np.mean(errs**2, axis=1)), "seconds": secs, "cpu_seconds": cpu}
+
+
+def run_opensim_ik_tool(setup_path: str | os.PathLike, results_directory: str | os.PathLike | None = None,
+                        time_range: tuple[float, float] | None = None) -> dict:
+    """Run OpenSim's ``InverseKinematicsTool`` on an IK setup file as OpenSim's GUI or ``opensim-cmd run-tool`` would.
+
+    The setup's model, marker file and output names resolve against the setup's folder; with
+    `results_directory` the output motion is written there instead, with `time_range` (s) only that window is
+    solved (the setup file is not changed).
+
+    Returns
+    -------
+    dict with ``time`` (F,), ``q`` (F, n_q) SI (rotations in rad) in the .mot's column order,
+    ``coordinates`` and ``motion`` (the written .mot path).
+    """
+    from kinematics.io.storage import read_mot
+
+    osim = import_opensim()
+    setup_path = Path(setup_path).resolve()
+    cwd = os.getcwd()
+    try:
+        os.chdir(setup_path.parent)              # OpenSim resolves relative names against the working directory
+        tool = osim.InverseKinematicsTool(os.fspath(setup_path))
+        if results_directory is not None:
+            tool.set_results_directory(os.fspath(Path(results_directory).resolve()))
+            Path(results_directory).mkdir(parents=True, exist_ok=True)
+        out = Path(tool.getOutputMotionFileName())
+        if results_directory is not None:
+            out = Path(results_directory).resolve() / out.name
+            tool.setOutputMotionFileName(os.fspath(out))
+        if time_range is not None:
+            tool.setStartTime(float(time_range[0]))
+            tool.setEndTime(float(time_range[1]))
+        if not tool.run():
+            raise InputError(setup_path, "OpenSim's IK tool failed")
+        out = out if out.is_absolute() else setup_path.parent / out
+    finally:
+        os.chdir(cwd)
+    tab = read_mot(out)
+    om = osim.Model(os.fspath((setup_path.parent / tool.get_model_file()).resolve()))
+    cs = om.getCoordinateSet()
+    rot = [cs.get(i).getName() for i in range(cs.getSize()) if int(cs.get(i).getMotionType()) == 1]
+    tab = tab.to_radians([c for c in tab.columns if c in rot]) if tab.in_degrees else tab
+    return {"time": np.asarray(tab.time, float), "q": np.asarray(tab.values, float), "coordinates": tuple(tab.columns),
+            "motion": out}

@@ -30,7 +30,8 @@ def fit_knee_laws(pm, trials: list, say=lambda m: None, standing: dict | None = 
     """Knee laws fitted from IK with free knee translations, or the default law.
 
     Model: the personalised model without its knee couplings (translations
-    free within +-3 cm); IK of `trials`; then per side the least-squares law
+    free within +-3 cm); IK of `trials` (internal frame, mapped into the model's ground by ``pm.G``);
+    then per side the least-squares law
     t = c_flex flexion + c_0 (`kinematics.mechanisms.correlative_fit.fit_law`).
     Skin markers move over the bones by more than the knee translations, so a
     fitted law is kept only when its slopes are physiological
@@ -50,7 +51,7 @@ def fit_knee_laws(pm, trials: list, say=lambda m: None, standing: dict | None = 
     from kinematics.mechanisms.correlative import CorrelativeLaw
     from kinematics.mechanisms.correlative_fit import fit_law
 
-    from ..model_builder import default_knee_law
+    from ..model_builder import default_knee_law, trial_in_ground
 
     free = pm.model.with_couplings(None)
     sides = list(pm.knee_laws)
@@ -58,7 +59,7 @@ def fit_knee_laws(pm, trials: list, say=lambda m: None, standing: dict | None = 
     D = {s: [] for s in sides}
     for t in trials:
         say(f"knee law: IK with free knee translations on {Path(t.source).name}")
-        r = solve_ik(free, t)
+        r = solve_ik(free, trial_in_ground(pm, t))
         for s in sides:
             A[s].append(r.q[:, [free.coordinate_index(f"knee_{n}_{s}") for n in ("flexion", "adduction", "rotation")]])
             D[s].append(r.q[:, [free.coordinate_index(f"knee_{n}_{s}") for n in ("tx", "ty", "tz")]])

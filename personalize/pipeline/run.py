@@ -113,7 +113,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
         mesh_files = write_meshes(pm, meshes_lab, inside(stage, "meshes"))
         save_model_json(pm, inside(stage, "model.json"), mesh_files)
         save_model_osim(pm, inside(stage, "model.osim"), mesh_files)
-        ik, summary.ik = solve_trials(pm, inputs, stage, say)
+        ik, summary.ik = solve_trials(pm, inputs, stage, say, summary.notes)
         summary.chain_blend, chains = chain_blend(inputs, stage, summary.notes)
         if truth is not None:
             summary.chain_blend.update(chain_angle_errors(inputs, chains))

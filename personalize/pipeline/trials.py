@@ -11,7 +11,12 @@ from lowerlimb.errors import FitError, InputError
 
 from .inputs import SubjectInputs
 
-__all__ = ["TrialFit", "solve_trials", "chain_blend"]
+__all__ = ["TrialFit", "solve_trials", "chain_blend", "OPENSIM_IK_ACCURACY"]
+
+#: accuracy of the written OpenSim IK setups: OpenSim's default 1e-5 stops its assembler early (phantom gait: marker
+#: RMS up to 0.05 mm above the optimum, the weakly determined subtalar angle up to 2.4 deg away); at 1e-8 it lands
+#: on personalize's solution (within 0.005 deg)
+OPENSIM_IK_ACCURACY = 1e-8
 
 
 @dataclass(frozen=True)
@@ -28,30 +33,56 @@ class TrialFit:
                 "worst_marker": self.worst_marker}
 
 
-def solve_trials(pm, inputs: SubjectInputs, stage: Path, say) -> tuple[dict, dict]:
+def solve_trials(pm, inputs: SubjectInputs, stage: Path, say, notes: list | None = None) -> tuple[dict, dict]:
     """IK (`kinematics.algorithms.ik.solve_ik`) of the static and every motion trial on the model `pm`.
 
-    Writes ``kinematics/<trial>.mot`` (coordinates; rotations in deg) and ``kinematics/<trial>_marker_errors.sto``
-    (`personalize.inverse_kinematics.write_marker_errors`: OpenSim's columns, then per marker, m) into `stage`.  Returns (trial -> IK result, trial -> `TrialFit`).
+    The trials (internal frame) are mapped into the model's ground (`personalize.model_builder.trial_in_ground`).
+    Writes into `stage`, per trial:
+
+    * ``kinematics/<trial>.mot``: coordinates (rotations in deg);
+    * ``kinematics/<trial>_marker_errors.sto`` (`personalize.inverse_kinematics.write_marker_errors`: OpenSim's
+      columns, then per marker, m);
+    * ``kinematics/<trial>.trc``: the markers in the model's ground (mm), and ``kinematics/<trial>_ik_setup.xml``,
+      an OpenSim IK setup of the same problem (``../model.osim``, every tracked marker with weight 1 as
+      ``solve_ik`` weighs them, the trial's time range, accuracy `OPENSIM_IK_ACCURACY`, output
+      ``<trial>_opensim_ik.mot``), so that OpenSim's IK tool reproduces the ``.mot``.
+
+    `notes`, when given, receives the coordinates the markers leave undetermined (per trial) and the locked ones.
+    Returns (trial -> IK result, trial -> `TrialFit`).
     """
     from kinematics.algorithms.ik import solve_ik
-    from kinematics.io.storage import write_mot
+    from kinematics.io.ik_setup import write_ik_setup
+    from kinematics.io.storage import write_mot, write_trc
 
     from ..inverse_kinematics import write_marker_errors
+    from ..model_builder import trial_in_ground
 
     results, fits = {}, {}
     rot = [c.name for c in pm.model.coordinates if c.kind == "rotational"]
+    locked = [c.name for c in pm.model.coordinates if c.locked]
+    if notes is not None and locked:
+        notes.append(f"IK: {', '.join(locked)} locked at the standing pose (no marker on the distal body)")
     for name in ["static"] + sorted(inputs.trials):
-        trial = inputs.static if name == "static" else inputs.trials[name]
+        trial = trial_in_ground(pm, inputs.static if name == "static" else inputs.trials[name])
         say(f"IK {name}")
         res = solve_ik(pm.model, trial)
         results[name] = res
         write_mot(inside(stage, f"kinematics/{name}.mot"), pm.model.coordinate_names, res.time, res.q, rotational=rot,
                   name=f"IK {name}")
         write_marker_errors(inside(stage, f"kinematics/{name}_marker_errors.sto"), res, header=[f"IK {name}"])
+        write_trc(inside(stage, f"kinematics/{name}.trc"), trial.subset(res.markers), units="mm")
+        write_ik_setup(inside(stage, f"kinematics/{name}_ik_setup.xml"), model_file="../model.osim",
+                       marker_file=f"{name}.trc", output_motion_file=f"{name}_opensim_ik.mot",
+                       marker_weights={m: 1.0 for m in res.markers},
+                       time_range=(float(res.time[0]), float(res.time[-1])), accuracy=OPENSIM_IK_ACCURACY,
+                       name=f"{name}_ik")
         me = np.nanmean(res.marker_errors, axis=0)
         fits[name] = TrialFit(float(np.nanmean(res.rms) * 1e3), float(np.nanmax(res.rms) * 1e3), int(res.q.shape[0]),
                               f"{res.markers[int(np.nanargmax(me))]} {np.nanmax(me) * 1e3:.1f} mm")
+        if notes is not None and res.undetermined_coordinates:
+            n_und = int((res.solved & ~res.determined).sum())
+            notes.append(f"IK {name}: the markers do not determine {', '.join(res.undetermined_coordinates)} in "
+                         f"{n_und} of {res.q.shape[0]} frames (kept at the previous frame's value there)")
     return results, fits
 
 
