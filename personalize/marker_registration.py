@@ -262,7 +262,8 @@ def register_segments(landmarks: LandmarkSet, static_trial, *, sides=("r", "l"),
                       surfaces: dict | None = None, skin_thickness: float | dict | None = None,
                       skin_sd: float | dict | None = None, marker_radius: float = DEFAULT_MARKER_RADIUS,
                       placement_sd: float = MARKER_PLACEMENT_SD, k_outlier: float = 3.0,
-                      landmarks_source: str = "landmarks.json", tissue_prior=None) -> SegmentRegistrations:
+                      landmarks_source: str = "landmarks.json", tissue_prior=None,
+                      virtual: dict | None = None) -> SegmentRegistrations:
     """Register every segment's MRI landmarks to the static-trial markers.
 
     Segments: ``pelvis`` (RASI, LASI, RPSI, LPSI, SYMP), ``femur_s`` (TRO, KNE,
@@ -290,6 +291,8 @@ def register_segments(landmarks: LandmarkSet, static_trial, *, sides=("r", "l"),
     placement_sd : m, marker placement sd added to the static scatter
     tissue_prior : `kinematics.gait.soft_tissue.TissueScalePrior` or None: the scale of the prior
         tissues is then estimated per segment with its pose (`register_landmarks`)
+    virtual : {segment: {marker: (scanner point (3,), outward normal (3,))}} for markers over a point that is
+        not itself a landmark (a sacral marker over the mid-point of the PSIS)
 
     Returns
     -------
@@ -336,6 +339,10 @@ def register_segments(landmarks: LandmarkSet, static_trial, *, sides=("r", "l"),
             continue
         corr = marker_correspondences(bones, bone_names, wanted, static, surfaces=surfaces, normals=normals,
                                       skin_thickness=skin_thickness, skin_sd=skin_sd, marker_radius=marker_radius)
+        for n, (p, nrm) in (virtual or {}).get(seg_name, {}).items():
+            if n in static:
+                corr.add_marker(n, Gaussian(np.asarray(p, float), np.zeros((3, 3))), static[n], nrm,
+                                skin_thickness=skin_thickness, skin_sd=skin_sd, marker_radius=marker_radius)
         if len(corr) < 3:
             missing_mri = [n for n in wanted if n not in mri]
             missing_lab = [n for n in wanted if n not in static]

@@ -211,7 +211,11 @@ def default_knee_law(side: str) -> CorrelativeLaw:
     )
 
 
-def _body_of_marker(name: str, sides) -> str | None:
+def _body_of_marker(name: str, sides, marker_bodies: dict | None = None) -> str | None:
+    """The body marker `name` rides on: `marker_bodies` (`SubjectParameters.marker_bodies`) when given, else the
+    Plug-in-Gait name table `MARKER_BODIES`; None: not placed on the model."""
+    if marker_bodies is not None:
+        return marker_bodies.get(name)
     if name in MARKER_BODIES["pelvis"]:
         return "pelvis"
     s = name[:1].lower()
@@ -249,7 +253,7 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
     length_pelvis = 0.0833 * p.height                       # de Leva lower-trunk length / stature
     bodies = [Body("pelvis", DE_LEVA["pelvis"][0] * p.mass, np.zeros(3),
                    _inertia(DE_LEVA["pelvis"][0] * p.mass, length_pelvis, DE_LEVA["pelvis"][2]))]
-    toes_markers = {n for n in p.markers if n[1:] in MARKER_BODIES["toes"]}
+    toes_bodies = {_body_of_marker(n, p.sides, p.marker_bodies) for n in p.markers}
 
     def local(body, x):
         o, R = frames[body]
@@ -281,7 +285,7 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         hc = [sided(c, s) for c in JOINT_COORDINATES["hip"]]
         kc = [sided(c, s) for c in KNEE_ROTATIONS]
         kt = [sided(c, s) for c in KNEE_TRANSLATIONS]
-        toes_tracked = any(n[0].lower() == s for n in toes_markers)
+        toes_tracked = f"toes_{s}" in toes_bodies
         # the leg's rotations are clamped to their ranges (IK keeps them inside); the knee translations follow the law
         coords += [Coordinate(n, d.kind, range=d.range, locked=(d.joint == "mtp" and not toes_tracked),
                               clamped=d.kind == "rotational")
@@ -325,7 +329,7 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
                                parent_offset=offset(f"calcn_{s}", sp.mtp, R_t), child_offset=offset(f"toes_{s}", sp.mtp, R_t)))
     markers = []
     for n in sorted(p.markers):
-        body = _body_of_marker(n, p.sides)
+        body = _body_of_marker(n, p.sides, p.marker_bodies)
         x = np.asarray(p.markers[n], float)
         if body is None or body not in frames or not np.all(np.isfinite(x)):
             continue

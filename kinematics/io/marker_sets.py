@@ -31,6 +31,16 @@ Presets (`PRESETS`, `preset`):
 * ``opensim`` -- OpenSim gait2392's names (``gait2392_Scale_MarkerSet.xml``):
   ``R.ASIS``, ``V.Sacral``, ``R.Thigh.Upper``, ``R.Knee.Lat``, ... (the torso
   markers Sternum, R/L.Acromium, Top.Head ride on ``torso``).
+
+Matching a trial (`match_marker_set`, `detect_marker_set`): a set fits a trial
+when the trial shows every pelvis marker of the set and, for at least one
+side, every marker the set puts on that side's bodies (``torso`` and
+``ignore`` markers are never required); Vicon ``Subject:`` label prefixes are
+ignored.  The canonical view (`canonical_names`, `canonical_trial`) renames a
+marker with a ``landmark`` to that landmark's name (``RTUB`` -> ``RTTB``,
+``R.Knee.Lat`` -> ``RKNE``) and a pelvis marker named like the sacrum
+(``V.Sacral``) to ``SACR``, so that estimators written for the internal
+(Plug-in-Gait / ``landmarks.json``) names find them.
 """
 from __future__ import annotations
 
@@ -39,10 +49,13 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from lowerlimb.errors import InputError
 
 __all__ = ["MarkerDef", "MarkerSet", "PRESETS", "preset", "resolve_marker_set", "read_marker_set",
-           "write_marker_set", "SPECIAL_SEGMENTS"]
+           "write_marker_set", "SPECIAL_SEGMENTS", "SetMatch", "match_marker_set", "detect_marker_set",
+           "canonical_names", "canonical_trial", "LEGACY_LANDMARKS"]
 
 #: segments that are not bodies of a lower-limb model
 SPECIAL_SEGMENTS = ("torso", "ignore")
@@ -211,3 +224,103 @@ def write_marker_set(path: str | os.PathLike, ms: MarkerSet) -> Path:
     from lowerlimb.atomic import write_text
 
     return write_text(path, json.dumps(ms.to_json(), indent=1) + "\n")
+
+
+# --------------------------------------------------------------------------- matching a trial
+#: medial markers named as Plug-in-Gait extensions (the analytic phantoms' KNEM, ANKM) -> their landmark, for
+#: labels a marker set leaves out
+LEGACY_LANDMARKS = {"KNEM": "MFC", "ANKM": "MMA"}
+
+
+def _bare(label: str) -> str:
+    """`label` without a Vicon ``Subject:`` prefix."""
+    return str(label).rsplit(":", 1)[-1]
+
+
+def _side_of(md: MarkerDef) -> str | None:
+    return md.segment[-1] if md.segment[-2:] in ("_r", "_l") else None
+
+
+@dataclass(frozen=True)
+class SetMatch:
+    """How a marker set fits a trial's labels.
+
+    marker_set : the set; sides : sides ('r', 'l') with every one of their markers visible
+    missing : labels the set needs but the trial lacks (the pelvis', then the most complete side's)
+    found : number of the set's labels the trial shows
+    """
+
+    marker_set: MarkerSet
+    sides: tuple
+    missing: tuple
+    found: int
+
+    @property
+    def fits(self) -> bool:
+        return bool(self.sides) and not any(self.marker_set.segment(m) == "pelvis" for m in self.missing)
+
+
+def match_marker_set(ms: MarkerSet, trial) -> SetMatch:
+    """`SetMatch` of `ms` on `trial` (a `kinematics.io.markers.MarkerTrial`; a marker counts when it has a finite frame)."""
+    seen = set()
+    for i, n in enumerate(trial.names):
+        if np.isfinite(trial.positions[:, i]).all(axis=1).any():
+            seen.add(_bare(n))
+    need = {k: v for k, v in ms.markers.items() if v.segment not in SPECIAL_SEGMENTS}
+    pelvis = [k for k, v in need.items() if v.segment == "pelvis" and k not in seen]
+    per_side = {s: [k for k, v in need.items() if _side_of(v) == s and k not in seen] for s in ("r", "l")}
+    has = {s: any(_side_of(v) == s for v in need.values()) for s in ("r", "l")}
+    sides = tuple(s for s in ("r", "l") if has[s] and not per_side[s])
+    best = min((s for s in ("r", "l") if has[s]), key=lambda s: len(per_side[s]), default=None)
+    missing = tuple(pelvis + ([] if best is None or sides else per_side[best]))
+    return SetMatch(ms, sides, missing, sum(k in seen for k in ms.markers))
+
+
+def detect_marker_set(trial, candidates=None) -> SetMatch:
+    """The preset (or one of `candidates`, `MarkerSet`s) that fits `trial` best.
+
+    Among the sets that fit (`SetMatch.fits`), the one showing the most of its labels; ties go to the smaller
+    set (fewer labels unaccounted for).  When none fits, the one missing the fewest markers (its `SetMatch`
+    says what is missing).
+    """
+    sets = list(candidates) if candidates is not None else [b() for b in PRESETS.values()]
+    matches = [match_marker_set(ms, trial) for ms in sets]
+    fitting = [m for m in matches if m.fits]
+    if fitting:
+        return max(fitting, key=lambda m: (m.found, -len(m.marker_set.markers)))
+    return min(matches, key=lambda m: (len(m.missing), -m.found))
+
+
+def canonical_names(ms: MarkerSet | None, labels) -> dict:
+    """label -> internal name: the set's ``landmark`` for markers that have one, ``SACR`` for a sacral pelvis marker
+    without one (label containing ``SAC``), `LEGACY_LANDMARKS` for labels the set leaves out, else the label.
+
+    A name already used by another label is never taken (the label then keeps its own name).
+    """
+    labels = list(labels)
+    taken = set(labels)
+    out = {}
+    for lab in labels:
+        md = ms.markers.get(lab) if ms is not None else None
+        new = None
+        if md is not None and md.landmark:
+            new = md.landmark
+        elif md is not None and md.segment == "pelvis" and "SAC" in lab.upper():
+            new = "SACR"
+        elif md is None and len(lab) > 1 and lab[0] in "RL" and lab[1:] in LEGACY_LANDMARKS:
+            new = lab[0] + LEGACY_LANDMARKS[lab[1:]]
+        if new is None or new == lab or new in taken:
+            out[lab] = lab
+        else:
+            out[lab] = new
+            taken.add(new)
+    return out
+
+
+def canonical_trial(trial, ms: MarkerSet | None):
+    """`trial` with its labels renamed by `canonical_names` (same positions, same source)."""
+    from .markers import MarkerTrial
+
+    names = canonical_names(ms, trial.names)
+    return MarkerTrial(tuple(names[n] for n in trial.names), trial.positions, trial.rate, trial.time, trial.source,
+                       trial.extra)

@@ -2,7 +2,8 @@
 
 SUBJECT_DIR holds ``labels.nii.gz`` (+ ``label_map.json``) or ``bones/``,
 ``static.c3d``, any number of trial C3Ds (``functional_hip*.c3d`` calibrates
-the hip centres) and ``subject.json``; the folder `personalize phantom`
+the hip centres), ``subject.json`` and, for a marker set other than a preset the
+labels fit, ``markers.json`` (or ``--marker-set FILE|PRESET``); the folder `personalize phantom`
 writes is itself a valid SUBJECT_DIR.  Writes model.osim, model.json,
 meshes/, landmarks.json, joints.json, kinematics/<trial>.mot (+ marker
 errors), report.html and summary.json; when the subject is refused, only
@@ -26,6 +27,9 @@ def register(app: typer.Typer) -> None:
         report: bool = typer.Option(True, "--report/--no-report", help="Write report.html."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress display."),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --out folder whole."),
+        marker_set: str = typer.Option(None, "--marker-set", help="The trials' marker set when the subject folder has "
+                                       "no markers.json: a markers.json file or a preset (pig, ior, cast, opensim); "
+                                       "default: the preset the static trial's labels fit."),
     ) -> None:
         """Personalised model from MRI and motion capture: fused joints, model.osim, IK of every trial, report."""
         from rich.console import Console
@@ -35,7 +39,8 @@ def register(app: typer.Typer) -> None:
 
         console = Console(stderr=True, quiet=quiet)
         with StepProgress("run", expected_steps(subject_dir), console) as prog:
-            summary = run_subject(subject_dir, out, report=report, progress=prog, overwrite=overwrite)
+            summary = run_subject(subject_dir, out, report=report, progress=prog, overwrite=overwrite,
+                                  marker_set=marker_set)
         if not quiet:
             _print_summary(summary, out, Console())
 

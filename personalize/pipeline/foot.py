@@ -3,9 +3,10 @@
 The shank is registered from its ankle markers, projected on the MRI ankle
 axis, and the fused knee centre; the foot from its heel and metatarsal markers
 (a virtual TOE landmark between the metatarsal heads) and the fused ankle
-centre (else it follows the shank).  Motion: the transmalleolar axis ANK - ANKM
+centre (else it follows the shank).  Motion: the transmalleolar axis ANK - MMA
 of the static trial (else the Plug-in-Gait torsioned tibia) and the
-Plug-in-Gait ankle centre.  The scales are calibrated on TRAINING phantoms
+Plug-in-Gait ankle centre (else the malleolus-marker midpoint,
+`motion.condylar_centre`).  The scales are calibrated on TRAINING phantoms
 (``calibration.json``).
 """
 from __future__ import annotations
@@ -17,8 +18,8 @@ from lowerlimb.errors import FitError, InputError
 from ..fusion import Fused, fuse_axis, fuse_gaussian
 from ..registration import Registration
 from .joint_estimates import AxisEstimates, AxisLine, CentreEstimates, Direction, JointContext, JointEstimates
-from .knee import centre_model_error, centre_scale
-from .motion import MOTION_ANKLE_AXIS_SD_DEG, PIG_ANKLE_AXIS_SD_DEG, pig_centre
+from .knee import centre_model_error, centre_scale, condyle_labels, motion_centre
+from .motion import MOTION_ANKLE_AXIS_SD_DEG, PIG_ANKLE_AXIS_SD_DEG
 from .segment_registration import register_with_centre, toe_landmark
 
 __all__ = ["MRI_ANKLE_AXIS_SD_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE_MEASURED",
@@ -43,25 +44,49 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
     """Shank registration, ankle centre and axis estimates of side `s`; returns them and the centre scale in force."""
     S = s.upper()
     j_knee, j_ankle = ctx.joints[f"knee_{s}"], ctx.joints[f"ankle_{s}"]
-    pig = pig_centre(ctx.pig, "ankle", s)
+    pig, kind = motion_centre(ctx, "ankle", s, est)
     reg = register_with_centre(f"tibia_{s}", ctx.bones, [f"tibia_{s}", f"fibula_{s}"],
                                (f"{S}ANK", f"{S}MMA", f"{S}TTB", f"{S}HFB"), ctx.static, ctx.meshes, j_knee.centre,
                                knee.gaussian.scaled(1.0 / knee_scale), axis=(j_ankle.origin, j_ankle.axis),
-                               fallback=[("pig_ankle_centre", j_ankle.centre, pig)])
+                               fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)])
     scale = centre_scale(ctx, MRI_ANKLE_CENTRE_COV_SCALE, MRI_ANKLE_CENTRE_COV_SCALE_MEASURED)
     mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_ANKLE_MODEL_SD))
     u, sd, _ = reg.transfer_direction(j_ankle.axis, j_ankle.axis_sd_deg)
     mri_axis = Direction(u, sd * MRI_ANKLE_AXIS_SD_SCALE)
-    if f"{S}ANKM" in ctx.static:
-        motion_axis = Direction(ctx.static[f"{S}ANK"].mean - ctx.static[f"{S}ANKM"].mean, MOTION_ANKLE_AXIS_SD_DEG)
-        est.sources[f"ankle_axis_{s}_motion"] = "transmalleolar axis ANK - ANKM of the static trial"
-    else:
+    if f"{S}MMA" in ctx.static and f"{S}ANK" in ctx.static:
+        motion_axis = Direction(ctx.static[f"{S}ANK"].mean - ctx.static[f"{S}MMA"].mean, MOTION_ANKLE_AXIS_SD_DEG)
+        est.sources[f"ankle_axis_{s}_motion"] = f"transmalleolar axis {condyle_labels(ctx.view, 'ankle', s)} of the static trial"
+    elif ctx.pig is not None:
         motion_axis = Direction(ctx.pig.segments[f"tibia_torsioned_{s}"].axes[0][:, 1], PIG_ANKLE_AXIS_SD_DEG)
         est.sources[f"ankle_axis_{s}_motion"] = "Plug-in-Gait torsioned tibia y axis (tibial torsion from subject.json)"
+    else:
+        raise InputError(ctx.inputs.static.source, f"no {S} ankle axis from the markers: needs the lateral and medial "
+                                                   "malleolus markers or the Plug-in-Gait markers")
     axis = AxisEstimates(mri_axis, motion_axis, fuse_axis([mri_axis.direction, motion_axis.direction],
                                                           [mri_axis.sd_deg, motion_axis.sd_deg], ("mri", "motion")))
     centre = CentreEstimates(mri, pig, fuse_gaussian([mri, pig], ("mri", "motion")))
     return reg, centre, axis, scale
+
+
+def foot_points(static: dict, S: str, view=None):
+    """Heel and toe points of a foot (static lab, m) and what the toe point is: the TOE marker, else the
+    mid-point of the metatarsal-head markers (D1M, D5M), else the foot marker of the set (`view`, a
+    `markers.MarkerView`) farthest from the heel."""
+    if f"{S}HEE" not in static:
+        raise InputError("static trial", f"the {S} foot needs a heel marker ({S}HEE)")
+    hee = static[f"{S}HEE"].mean
+    if f"{S}TOE" in static:
+        return hee, static[f"{S}TOE"].mean, "TOE marker"
+    if f"{S}D1M" in static and f"{S}D5M" in static:
+        return hee, 0.5 * (static[f"{S}D1M"].mean + static[f"{S}D5M"].mean), "mid-point of the metatarsal-head markers"
+    s = S.lower()
+    foot = [] if view is None else [n for b in (f"calcn_{s}", f"toes_{s}") for n in view.segment_markers(b)
+                                    if n in static and n != f"{S}HEE"]
+    if foot:
+        far = max(foot, key=lambda n: float(np.linalg.norm(static[n].mean - hee)))
+        return hee, static[far].mean, f"{view.label(far)} marker"
+    raise InputError("static trial", f"the {S} foot needs a toe marker ({S}TOE), both metatarsal-head markers "
+                                     f"({S}D1M, {S}D5M) or another foot marker in the marker set")
 
 
 def estimate_foot_axes(ctx: JointContext, s: str, ankle: Fused, ankle_scale: float, reg_shank: Registration,
@@ -84,7 +109,7 @@ def estimate_foot_axes(ctx: JointContext, s: str, ankle: Fused, ankle_scale: flo
             u, _, _ = reg.transfer_direction(j.axis)
             lines[jn] = AxisLine(o, u)
             est.sources[f"{jn}_{s}"] = "MRI"
-    hee, toe = ctx.static[f"{S}HEE"].mean, ctx.static[f"{S}TOE"].mean
+    hee, toe, toe_what = foot_points(ctx.static, S, ctx.view)
     fwd = toe - hee
     fwd[2] = 0.0
     fwd /= np.linalg.norm(fwd)
@@ -97,5 +122,5 @@ def estimate_foot_axes(ctx: JointContext, s: str, ankle: Fused, ankle_scale: flo
         est.sources[f"subtalar_{s}"] = "default axis (Inman 1976: 42 deg up, 23 deg medial), 3 cm below the ankle centre"
     if "mtp" not in lines:
         lines["mtp"] = AxisLine(toe - 0.01 * fwd + np.array([0.0, 0.0, -0.02]), left)
-        est.sources[f"mtp_{s}"] = "default: medio-lateral axis under the TOE marker"
+        est.sources[f"mtp_{s}"] = f"default: medio-lateral axis under the {toe_what}"
     return reg, lines

@@ -11,7 +11,9 @@ was measured in the MRI's body label (`personalize.skin`).  Motion: SCoRE's
 residual covariance plus the soft-tissue-artefact term
 `personalize.pipeline.motion.MOTION_HIP_STA_COV`.  Both hips are fused at once
 (`fuse_hips`), so a functional centre also corrects the registration error the
-other hip shares.  The scales were calibrated on TRAINING phantom subjects
+other hip shares.  Without a functional trial, SCoRE runs on a walk only when
+its hip range of motion qualifies (`motion.FUNCTIONAL_HIP_MIN_RANGE_DEG`),
+else a published regression is the motion hip (`estimate_hips`).  The scales were calibrated on TRAINING phantom subjects
 (`benchmarks/fusion_cache.py` then `benchmarks/fusion_calibration.py`;
 validation seeds are never used); the numbers they came from are in
 ``calibration.json``.
@@ -27,9 +29,10 @@ from lowerlimb.estimates import Gaussian
 
 from ..fusion import Fused, fuse_linear
 from .joint_estimates import CentreEstimates, JointContext, JointEstimates
-from .motion import DAVIS_HIP_SD, motion_hip
+from .motion import (DAVIS_HIP_SD, FUNCTIONAL_HIP_MIN_RANGE_DEG, HARRINGTON_SD, PELVIS_CLUSTER, THIGH_MARKERS,
+                     harrington_hip, hip_range_of_motion, motion_hip, pelvis_rear, subject_marker_radius)
 
-__all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD", "fuse_hips", "estimate_hips"]
+__all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD", "fuse_hips", "estimate_hips", "hip_motion_trial"]
 
 #: variance scale of the registration-propagated MRI hip covariance: mean Mahalanobis d² = 3 on 24 TRAINING
 #: phantom subjects (48 legs; calibration.json ``mri_hip_cov_scale``); the phantoms' pelvis markers sit exactly
@@ -94,21 +97,71 @@ def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None 
 
 
 
+def _skin_of(est: JointEstimates) -> dict:
+    """marker -> (mean, sd) m of the soft tissue measured or estimated under the pelvic markers."""
+    out = {}
+    for k, v in est.skin.items():
+        t, sd = getattr(v, "thickness", None), getattr(v, "sd", None)
+        if t is not None and sd is not None and np.isfinite(t) and np.isfinite(sd):
+            out[k] = (float(t), float(sd))
+    return out
+
+
+def hip_motion_trial(ctx: JointContext, s: str, pelvis_axes, pelvis, thigh):
+    """The trial SCoRE is run on for side `s`: the functional trial, else the dynamic trial with the largest hip
+    range of motion when it reaches `motion.FUNCTIONAL_HIP_MIN_RANGE_DEG`; (trial, its ranges or None, why not)."""
+    if ctx.functional is not None:
+        return ctx.functional, None, ""
+    best, best_rom = None, None
+    for t in ctx.dynamic:
+        rom = hip_range_of_motion(ctx.view.static, t, s, pelvis_axes, pelvis=pelvis, thigh=thigh)
+        if rom is not None and (best_rom is None or min(rom[k] / v for k, v in FUNCTIONAL_HIP_MIN_RANGE_DEG.items())
+                                > min(best_rom[k] / v for k, v in FUNCTIONAL_HIP_MIN_RANGE_DEG.items())):
+            best, best_rom = t, rom
+    if best_rom is None:
+        return None, None, "no trial shows 3 pelvis and 3 thigh markers"
+    rom_text = f"flexion-extension {best_rom['flexion']:.0f} deg, ab-adduction {best_rom['abduction']:.0f} deg"
+    if all(best_rom[k] >= v for k, v in FUNCTIONAL_HIP_MIN_RANGE_DEG.items()):
+        return best, best_rom, rom_text
+    need = ", ".join(f"{k} {v:.0f}" for k, v in FUNCTIONAL_HIP_MIN_RANGE_DEG.items())
+    return None, best_rom, (f"no functional trial, and the widest hip motion ({Path(best.source).name}: {rom_text}) "
+                            f"is below the functional method's minimum ({need} deg)")
+
+
 def estimate_hips(ctx: JointContext, reg_pelvis, pelvis_axes, est: JointEstimates) -> None:
-    """MRI, motion and fused hip centres of every side into `est` (``centres[s]["hip"]``, ``hip_joint``)."""
+    """MRI, motion and fused hip centres of every side into `est` (``centres[s]["hip"]``, ``hip_joint``).
+
+    Motion hip: SCoRE on the functional trial; without one, SCoRE on the dynamic trial of widest hip motion only
+    when it reaches `motion.FUNCTIONAL_HIP_MIN_RANGE_DEG` (the rule and its sources are there); otherwise a
+    published regression: Davis (Plug-in-Gait, sd `motion.DAVIS_HIP_SD`) when the Plug-in-Gait markers are
+    there, else Harrington et al. 2007 from the pelvis markers (`motion.harrington_hip`, sd `HARRINGTON_SD`).
+    """
     hips_scanner, hip_motion = {}, {}
-    trial = ctx.functional if ctx.functional is not None else ctx.dynamic[0]
+    view = ctx.view
+    pelvis = view.segment_markers("pelvis", PELVIS_CLUSTER)
     for s in ctx.inputs.sides:
         hips_scanner[s] = ctx.joints[f"hip_{s}"].centre
         ctx.say(f"hip {s.upper()}: functional centre")
+        thigh = view.segment_markers(f"femur_{s}", tuple(s.upper() + m for m in THIGH_MARKERS))
+        trial, rom, why = hip_motion_trial(ctx, s, pelvis_axes, pelvis, thigh)
         try:
-            hip_motion[s], _ = motion_hip(ctx.inputs.static, trial, s, pelvis_axes)
+            if trial is None:
+                raise InputError(ctx.inputs.static.source, why)
+            hip_motion[s], _ = motion_hip(view.static, trial, s, pelvis_axes, pelvis=pelvis, thigh=thigh)
             est.sources[f"hip_{s}_motion"] = f"SCoRE on {Path(trial.source).name}" + (
-                "" if ctx.functional is not None else " (no functional trial)")
+                "" if ctx.functional is not None else f" (no functional trial; hip range {why} qualifies)")
         except (InputError, FitError) as exc:
-            hip_motion[s] = Gaussian.isotropic(np.median(ctx.pig.centres[f"hip_{s}"], axis=0), DAVIS_HIP_SD)
-            est.sources[f"hip_{s}_motion"] = "Plug-in-Gait (Davis) regression of the static trial"
-            est.notes.append(f"hip {s.upper()}: no functional hip centre ({exc}); Plug-in-Gait regression used")
+            if ctx.pig is not None:
+                hip_motion[s] = Gaussian.isotropic(np.median(ctx.pig.centres[f"hip_{s}"], axis=0), DAVIS_HIP_SD)
+                est.sources[f"hip_{s}_motion"] = "Plug-in-Gait (Davis) regression of the static trial"
+                used = "Plug-in-Gait regression"
+            else:
+                hip_motion[s] = harrington_hip(ctx.static, s, pelvis_axes, _skin_of(est), subject_marker_radius(ctx.inputs))
+                est.sources[f"hip_{s}_motion"] = (
+                    f"Harrington et al. 2007 regression of the pelvis markers ({pelvis_rear(ctx.static)[1]}; "
+                    f"sd {HARRINGTON_SD * 1e3:.1f} mm per axis after Mantovani et al. 2016, plus the soft tissue's)")
+                used = "Harrington regression"
+            est.notes.append(f"hip {s.upper()}: no functional hip centre ({exc}); {used} used")
     # both hips at once: their MRI estimates share the pelvis registration error
     mri, fused, est.hip_joint = fuse_hips(reg_pelvis, hips_scanner, hip_motion, mri_scale=est.mri_hip_scale,
                                           model_sd=0.0 if ctx.tissue_measured else MRI_HIP_MODEL_SD)

@@ -26,12 +26,10 @@ from kinematics.io.markers import MarkerTrial
 from lowerlimb.errors import InputError
 
 __all__ = ["SubjectInputs", "find_inputs", "find_trials", "check_same_subject", "check_trial_legs", "TRIAL_LEG_RATIO_TOL",
-           "label_volume", "PELVIS_MARKERS"]
+           "label_volume", "PELVIS_MARKERS", "rigid_pelvis_labels"]
 
 #: the rigid pelvis markers every trial must show
 PELVIS_MARKERS = ("RASI", "LASI", "RPSI", "LPSI")
-#: markers (R/L prefixed) a side needs in the static trial
-_REQUIRED = ("THI", "KNE", "TIB", "ANK", "HEE", "TOE")
 
 
 @dataclass(frozen=True)
@@ -44,7 +42,8 @@ class SubjectInputs:
     subject : kinematics.gait.subject.SubjectMeasurements, or None until the bones give the measurements
         subject.json leaves out (`subject_given` holds what it gives)
     truth : dict (truth.json) or None; sides : tuple of sides with both bones and markers
-    marker_set : `kinematics.io.marker_sets.MarkerSet` the trials' labels follow (None: Plug-in-Gait names)
+    marker_set : `kinematics.io.marker_sets.MarkerSet` the trials' labels follow (None: Plug-in-Gait names);
+        marker_set_source : where it came from (`personalize.pipeline.markers.subject_marker_set`)
     lab : `kinematics.gait.lab_frame.LabFrame` the trials were recorded in (lab coordinates); every trial
         above is expressed in the internal frame, x_internal = lab.internal_from_lab @ x_lab (X the static
         pose's facing, Y left, Z up, m)
@@ -64,20 +63,26 @@ class SubjectInputs:
     marker_set: object = None
     lab: object = None
     subject_given: dict | None = None
+    marker_set_source: str = ""
     subject_sources: dict | None = None
 
 
-def _pelvis_distances(trial: MarkerTrial) -> np.ndarray:
+def _pelvis_distances(trial: MarkerTrial, names) -> np.ndarray:
+    """Median over frames of every pairwise distance between the markers `names` (m; NaN when never seen together)."""
     d = []
-    for a, b in (("RASI", "LASI"), ("RASI", "RPSI"), ("LASI", "LPSI"), ("RPSI", "LPSI")):
-        x = np.linalg.norm(trial.marker(a) - trial.marker(b), axis=1)
-        x = x[np.isfinite(x)]
-        d.append(np.median(x) if x.size else np.nan)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            x = np.linalg.norm(trial.marker(a) - trial.marker(b), axis=1)
+            x = x[np.isfinite(x)]
+            d.append(np.median(x) if x.size else np.nan)
     return np.array(d)
 
 
-def find_inputs(subject_dir: str | Path) -> SubjectInputs:
+def find_inputs(subject_dir: str | Path, marker_set=None) -> SubjectInputs:
     """Locate and read the inputs of a subject folder (see the module docstring).
+
+    `marker_set` : preset name, markers.json path or `MarkerSet` for a folder without ``markers.json``
+    (`personalize.pipeline.markers.subject_marker_set`).
 
     Raises
     ------
@@ -88,6 +93,7 @@ def find_inputs(subject_dir: str | Path) -> SubjectInputs:
 
     from ..evaluation.truth import read_truth
     from .lab import read_lab, to_internal
+    from .markers import subject_marker_set
 
     folder = Path(subject_dir)
     if not folder.is_dir():
@@ -109,17 +115,15 @@ def find_inputs(subject_dir: str | Path) -> SubjectInputs:
     lab = read_lab(static, trials.values())
     static = to_internal(static, lab)
     trials = {k: to_internal(t, lab) for k, t in trials.items()}
-    check_same_subject(static, trials.values())
+    ms, marker_sides, ms_source = subject_marker_set(folder, static, marker_set)
+    check_same_subject(static, trials.values(), ms)
     functional = next((k for k in sorted(trials) if k.lower() == "functional_hip"), None)
     if functional is None:
         functional = next((k for k in sorted(trials) if k.lower().startswith("functional")), None)
     truth = read_truth(folder / "truth.json")
-    marker_sides = [s for s in ("r", "l") if all(s.upper() + m in static.names for m in _REQUIRED)
-                    and all(_visible(static, s.upper() + m) for m in _REQUIRED)]
-    if not marker_sides:
-        raise InputError(static_path, f"no side has all of the markers {', '.join(_REQUIRED)} (R/L prefixed)")
-    return SubjectInputs(folder, bones, label_map, static, trials, functional, subject, truth, tuple(marker_sides),
-                         lab=lab, subject_given=given)
+    return SubjectInputs(folder, bones, label_map, static, trials, functional, subject, truth, marker_sides,
+                         marker_set=ms, lab=lab, subject_given=given, marker_set_source=ms_source)
+
 
 def find_trials(folder: Path) -> tuple[Path, list[Path]]:
     """The static trial and the motion trials of a subject folder (module docstring).
@@ -155,39 +159,51 @@ def _visible(trial: MarkerTrial, name: str) -> bool:
     return name in trial.names and bool(np.all(np.isfinite(trial.marker(name)), axis=1).any())
 
 
-def check_same_subject(static: MarkerTrial, trials) -> None:
+def rigid_pelvis_labels(static: MarkerTrial, marker_set=None) -> tuple:
+    """The labels of the rigid pelvis markers the trials are compared on: those the marker set puts on the pelvis
+    (every ``pelvis`` marker of `marker_set` the static trial has), else `PELVIS_MARKERS`."""
+    if marker_set is None:
+        return PELVIS_MARKERS
+    return tuple(m for m in marker_set.on_segment("pelvis") if m in static.names
+                 and not marker_set.markers[m].static_only)
+
+
+def check_same_subject(static: MarkerTrial, trials, marker_set=None) -> None:
     """Refuse trials that cannot be of the static trial's subject.
 
-    The four pelvis markers (RASI, LASI, RPSI, LPSI) sit on one rigid segment:
-    their four distances (inter-ASIS, ASIS-PSIS per side, inter-PSIS),
-    medians over the frames, must agree with the static trial's within
-    ``max(15 mm, 6 % of the shortest)``; a Vicon subject name (label prefix)
-    must be the static's.  The static must show every pelvis marker.
+    The pelvis markers (`rigid_pelvis_labels`: RASI, LASI, RPSI, LPSI for
+    Plug-in-Gait; R.ASIS, L.ASIS, V.Sacral for OpenSim's set) sit on one rigid
+    segment: their pairwise distances, medians over the frames, must agree with
+    the static trial's within ``max(15 mm, 6 % of the shortest)``; a Vicon
+    subject name (label prefix) must be the static's.  The static must show at
+    least three pelvis markers, each of them at some frame.
 
     Raises
     ------
     InputError naming the static trial (a pelvis marker never visible) or the trial at fault.
     """
     src = static.source
-    missing = [m for m in PELVIS_MARKERS if m not in static.names]
-    if missing:
-        raise InputError(src, f"missing markers: {', '.join(missing)}")
-    never = [m for m in PELVIS_MARKERS if not _visible(static, m)]
+    names = rigid_pelvis_labels(static, marker_set)
+    missing = [m for m in (PELVIS_MARKERS if marker_set is None else names) if m not in static.names]
+    if missing or len(names) < 3:
+        raise InputError(src, f"missing markers: {', '.join(missing)}" if missing else
+                         f"only {len(names)} pelvis marker(s) ({', '.join(names) or 'none'}): 3 are needed")
+    never = [m for m in names if not _visible(static, m)]
     if never:
         raise InputError(src, f"pelvis marker(s) {', '.join(never)} never visible ({static.n_frames} frames, "
                               "no valid sample): the static trial cannot place the pelvis")
-    ref = _pelvis_distances(static)
+    ref = _pelvis_distances(static, names)
     if not np.all(np.isfinite(ref)):
         raise InputError(src, "the pelvis markers are never visible together in one frame")
     for tr in trials:
-        missing = [m for m in PELVIS_MARKERS if m not in tr.names]
+        missing = [m for m in names if m not in tr.names]
         if missing:
             raise InputError(tr.source, f"pelvis markers {', '.join(missing)} missing")
         s1, s2 = static.extra.get("subject"), tr.extra.get("subject")
         if s1 and s2 and s1 != s2:
             raise InputError(tr.source, f"labelled for subject {s2!r} but the static trial "
                                         f"{Path(src).name} is subject {s1!r}")
-        d = _pelvis_distances(tr)
+        d = _pelvis_distances(tr, names)
         if not np.all(np.isfinite(d)):
             raise InputError(tr.source, "the pelvis markers are never visible together in one frame")
         diff = float(np.max(np.abs(d - ref)))

@@ -81,12 +81,13 @@ class JointContext:
     bones : bone -> `personalize.landmarks.BoneLandmarks` (scanner frame)
     joints : joint name -> `personalize.frames.Joint` (scanner frame; model-error term taken out: the MRI
         covariance scales were calibrated on phantoms)
-    static : marker -> `Gaussian` static position (medial markers also under their landmark names)
+    static : internal marker name -> `Gaussian` static position (`markers.MarkerView`: landmark names)
     meshes : bone -> surface mesh (scanner frame)
-    pig : Plug-in-Gait reconstruction of the static trial
-    dynamic : the non-functional motion trials; functional : the hip calibration trial or None
+    pig : Plug-in-Gait reconstruction of the static trial, or None without the Plug-in-Gait markers
+    dynamic : the non-functional motion trials; functional : the hip calibration trial or None (internal names)
     tissue_measured : the soft tissue under all four pelvic markers was measured in the MRI
     say : progress callable
+    view : `personalize.pipeline.markers.MarkerView` (the trials under internal names, segment clusters)
     """
 
     inputs: object
@@ -99,3 +100,4 @@ class JointContext:
     functional: object
     tissue_measured: bool
     say: object
+    view: object = None

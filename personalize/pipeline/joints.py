@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import Callable
 
+import numpy as np
+
 from kinematics.gait.pig import pelvis_frame
 from kinematics.gait.soft_tissue import tissue_scale_prior
 from lowerlimb.errors import InputError
@@ -22,7 +24,8 @@ from .hip import MRI_HIP_COV_SCALE, MRI_HIP_COV_SCALE_MEASURED, estimate_hips
 from .inputs import PELVIS_MARKERS, SubjectInputs, label_volume
 from .joint_estimates import JointContext, JointEstimates
 from .knee import estimate_knee
-from .motion import aliased_static, pig_static
+from .markers import marker_view
+from .motion import pelvis_rear, pig_static
 
 __all__ = ["estimate_joints", "pelvis_skin", "gate_registrations"]
 
@@ -56,10 +59,11 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, landmarks, joints: di
     dropped : joint name -> why it is missing (for the error message)
     skin : {marker: `personalize.skin.SkinThickness`}; default measured by `pelvis_skin` (empty without a body label)
     """
-    st = aliased_static(inputs.static)
+    view = marker_view(inputs)
+    st = view.static
     static = static_marker_positions(st)
     est = JointEstimates()
-    sac = 0.5 * (static["RPSI"].mean + static["LPSI"].mean)
+    sac, _ = pelvis_rear(static)
     pf = pelvis_frame(static["RASI"].mean[None], static["LASI"].mean[None], sac[None])
     est.pelvis = (pf.origin[0], pf.axes[0])
     if skin is None:
@@ -79,20 +83,21 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, landmarks, joints: di
                              skin_thickness={k: v.thickness for k, v in measured.items()},
                              skin_sd={k: v.sd for k, v in measured.items()},
                              tissue_prior=tissue_scale_prior(getattr(sub, "height", None), getattr(sub, "mass", None),
-                                                             getattr(sub, "age", None)))
+                                                             getattr(sub, "age", None)),
+                             virtual={"pelvis": sacral_landmark(landmarks, static)})
     if "pelvis" not in regs:
         raise InputError(inputs.static.source, "the pelvis could not be registered (needs RASI, LASI, RPSI, LPSI in MRI and markers)")
     est.registrations["pelvis"] = regs["pelvis"]
     est.skin.update(estimated_skin(regs["pelvis"]))
-    dynamic = [t for k, t in sorted(inputs.trials.items()) if k != inputs.functional and not k.startswith("functional")]
+    dynamic = [view.trials[k] for k in sorted(inputs.trials) if k != inputs.functional and not k.startswith("functional")]
     for s in inputs.sides:
         for jn in ("hip", "knee", "ankle"):
             if f"{jn}_{s}" not in joints:
                 why = (dropped or {}).get(f"{jn}_{s}", "not detected")
                 raise InputError(inputs.bones, f"no {jn}_{s} joint from the MRI bones ({why})")
-    ctx = JointContext(inputs, landmarks.bones, joints, static, meshes, pig_static(inputs),
-                       dynamic or list(inputs.trials.values()),
-                       inputs.trials[inputs.functional] if inputs.functional else None, all_measured, say)
+    ctx = JointContext(inputs, landmarks.bones, joints, static, meshes, pig_static(inputs, view),
+                       dynamic or [view.trials[k] for k in sorted(view.trials)],
+                       view.trials[inputs.functional] if inputs.functional else None, all_measured, say, view)
     estimate_hips(ctx, regs["pelvis"], est.pelvis[1], est)
     for s in inputs.sides:
         hip = est.centres[s]["hip"].fused
@@ -100,7 +105,7 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, landmarks, joints: di
         reg_t, ankle, ankle_axis, a_scale = estimate_ankle(ctx, s, knee.fused, k_scale, est)
         est.registrations[f"femur_{s}"], est.registrations[f"tibia_{s}"] = reg_f, reg_t
         for r in (reg_f, reg_t):
-            if any(n.startswith("pig_") for n in r.names):
+            if any(n.startswith(("pig_", "motion_")) for n in r.names):
                 est.notes.append(f"{r.segment}: fewer than 3 landmark/marker correspondences; registered with the Plug-in-Gait "
                                  "joint centre (MRI and motion estimates of this segment are correlated)")
         est.registrations[f"calcn_{s}"], est.lines[s] = estimate_foot_axes(ctx, s, ankle.fused, a_scale, reg_t, est)
@@ -108,6 +113,22 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, landmarks, joints: di
         est.axes[s] = {"knee": knee_axis, "ankle": ankle_axis}
     note_inconsistencies(est)
     return est
+
+
+def sacral_landmark(landmarks, static: dict) -> dict:
+    """{"SACR": (scanner point, outward normal)}: a sacral marker over the mid-point of the MRI's PSIS, for marker
+    sets without PSIS markers (OpenSim's V.Sacral); {} when the trial has both PSIS or no sacral marker."""
+    if "SACR" not in static or ("RPSI" in static and "LPSI" in static) or "pelvis" not in landmarks:
+        return {}
+    lm = landmarks["pelvis"].landmarks
+    if not all(n in lm for n in ("RASI", "LASI", "RPSI", "LPSI")):
+        return {}
+    p = {n: np.asarray(lm[n].position, float) for n in ("RASI", "LASI", "RPSI", "LPSI")}
+    mid_psis = 0.5 * (p["RPSI"] + p["LPSI"])
+    lr = p["LASI"] - p["RASI"]
+    back = mid_psis - 0.5 * (p["RASI"] + p["LASI"])
+    back -= (back @ lr) / (lr @ lr) * lr
+    return {"SACR": (mid_psis, back / np.linalg.norm(back))}
 
 
 def note_inconsistencies(est: JointEstimates, p_min: float = 0.01) -> None:

@@ -4,8 +4,9 @@ The femur is registered from its knee markers, projected on the MRI knee axis,
 and the fused hip centre; the MRI knee centre and axis reach the lab with the
 registration's covariance, scaled by the calibrated factors below (TRAINING
 phantoms; ``calibration.json``).  Motion: the SARA axis of the thigh and shank
-clusters (else the Plug-in-Gait femur axis) and the Plug-in-Gait knee centre of
-the static trial.  Centres are fused as Gaussians, axes on the sphere
+clusters (else the Plug-in-Gait femur axis, else the transepicondylar line) and
+the Plug-in-Gait knee centre of the static trial (else the midpoint of the
+epicondyle markers, `motion.condylar_centre`).  Centres are fused as Gaussians, axes on the sphere
 (`personalize.fusion`).
 """
 from __future__ import annotations
@@ -19,7 +20,8 @@ from lowerlimb.errors import FitError, InputError
 from ..fusion import Fused, fuse_axis, fuse_gaussian
 from ..registration import Registration
 from .joint_estimates import AxisEstimates, CentreEstimates, Direction, JointContext, JointEstimates
-from .motion import PIG_KNEE_AXIS_SD_DEG, motion_knee_axis, pig_centre
+from .motion import (CONDYLES, PIG_KNEE_AXIS_SD_DEG, SHANK_MARKERS, THIGH_MARKERS, condylar_axis, condylar_centre,
+                     motion_knee_axis, pig_centre, subject_marker_radius)
 from .segment_registration import register_with_centre
 
 __all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "MRI_KNEE_MODEL_SD",
@@ -48,6 +50,36 @@ def centre_scale(ctx: JointContext, prior: float, measured: float) -> float:
     return measured if ctx.tissue_measured else prior
 
 
+def _unsided(label: str) -> str:
+    """`label` without its side letter (RKNE, R.Knee.Lat, R_Knee -> KNE, Knee.Lat, Knee)."""
+    if label[:1] in ("R", "L") and len(label) > 2 and label[1] in "._- ":
+        return label[2:]
+    return label[1:] if label[:1] in ("R", "L") else label
+
+
+def condyle_labels(view, joint: str, s: str) -> str:
+    """'ANK - ANKM': the lab's own labels (side letter dropped) of a joint's lateral and medial markers."""
+    lat, med = (view.label(s.upper() + n) for n in CONDYLES[joint])
+    return f"{_unsided(lat)} - {_unsided(med)}"
+
+
+def motion_centre(ctx: JointContext, joint: str, s: str, est: JointEstimates):
+    """The motion estimate of the knee or ankle centre: Plug-in-Gait's (chord function) with its markers, else the
+    condyle-marker midpoint (`motion.condylar_centre`); the `Gaussian` and its kind ("pig" or "motion")."""
+    if ctx.pig is not None:
+        return pig_centre(ctx.pig, joint, s), "pig"
+    try:
+        g = condylar_centre(ctx.static, joint, s, marker_radius=subject_marker_radius(ctx.inputs))
+    except InputError as exc:
+        raise InputError(ctx.inputs.static.source, f"{exc.problem}: without the Plug-in-Gait markers the "
+                                                   f"{joint} centre comes from its lateral and medial markers") from None
+    what = "epicondyle" if joint == "knee" else "malleolus"
+    est.sources[f"{joint}_centre_{s}_motion"] = (
+        f"midpoint of the {what} markers {condyle_labels(ctx.view, joint, s)} moved in by marker radius + soft tissue "
+        f"(sd {np.sqrt(np.trace(g.cov) / 3) * 1e3:.1f} mm per axis)")
+    return g, "motion"
+
+
 def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
                   est: JointEstimates) -> tuple[Registration, CentreEstimates, AxisEstimates, float]:
     """Femur registration, knee centre and axis estimates of side `s`; returns them and the centre scale in force.
@@ -57,23 +89,32 @@ def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
     """
     S = s.upper()
     j_hip, j_knee = ctx.joints[f"hip_{s}"], ctx.joints[f"knee_{s}"]
-    pig = pig_centre(ctx.pig, "knee", s)
+    pig, kind = motion_centre(ctx, "knee", s, est)
     reg = register_with_centre(f"femur_{s}", ctx.bones, [f"femur_{s}"], (f"{S}KNE", f"{S}MFC", f"{S}TRO"), ctx.static,
                                ctx.meshes, j_hip.centre, hip.gaussian.scaled(1.0 / hip_scale),
-                               axis=(j_knee.origin, j_knee.axis), fallback=[("pig_knee_centre", j_knee.centre, pig)])
+                               axis=(j_knee.origin, j_knee.axis), fallback=[(f"{kind}_knee_centre", j_knee.centre, pig)])
     scale = centre_scale(ctx, MRI_KNEE_CENTRE_COV_SCALE, MRI_KNEE_CENTRE_COV_SCALE_MEASURED)
     mri = reg.transfer_estimate(j_knee.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_KNEE_MODEL_SD))
     u, sd, _ = reg.transfer_direction(j_knee.axis, j_knee.axis_sd_deg)
     mri_axis = Direction(u, sd * MRI_KNEE_AXIS_SD_SCALE)
     ctx.say(f"knee {S}: functional axis")
+    view = ctx.view
     try:
-        motion_axis = motion_knee_axis(ctx.inputs.static, ctx.dynamic, s)
+        motion_axis = motion_knee_axis(view.static, ctx.dynamic, s,
+                                       thigh=view.segment_markers(f"femur_{s}", tuple(S + m for m in THIGH_MARKERS)),
+                                       shank=view.segment_markers(f"tibia_{s}", tuple(S + m for m in SHANK_MARKERS)))
         est.sources[f"knee_axis_{s}_motion"] = "SARA (thigh and shank clusters) on " + ", ".join(
             Path(t.source).name for t in ctx.dynamic)
     except (InputError, FitError) as exc:
-        motion_axis = Direction(ctx.pig.segments[f"femur_{s}"].axes[0][:, 1], PIG_KNEE_AXIS_SD_DEG)
-        est.sources[f"knee_axis_{s}_motion"] = "Plug-in-Gait femur y axis of the static trial"
-        est.notes.append(f"knee {S}: no functional knee axis ({exc}); Plug-in-Gait axis used")
+        if ctx.pig is not None:
+            motion_axis = Direction(ctx.pig.segments[f"femur_{s}"].axes[0][:, 1], PIG_KNEE_AXIS_SD_DEG)
+            est.sources[f"knee_axis_{s}_motion"] = "Plug-in-Gait femur y axis of the static trial"
+            est.notes.append(f"knee {S}: no functional knee axis ({exc}); Plug-in-Gait axis used")
+        else:
+            motion_axis = condylar_axis(ctx.static, "knee", s)
+            est.sources[f"knee_axis_{s}_motion"] = (f"transepicondylar line {condyle_labels(view, 'knee', s)} of the "
+                                                    f"static trial (sd {motion_axis.sd_deg:.1f} deg)")
+            est.notes.append(f"knee {S}: no functional knee axis ({exc}); transepicondylar line used")
     axis = AxisEstimates(mri_axis, motion_axis, fuse_axis([mri_axis.direction, motion_axis.direction],
                                                           [mri_axis.sd_deg, motion_axis.sd_deg], ("mri", "motion")))
     centre = CentreEstimates(mri, pig, fuse_gaussian([mri, pig], ("mri", "motion")))

@@ -6,12 +6,18 @@ import numpy as np
 from ..model_builder import SideParameters, SubjectParameters
 from .inputs import SubjectInputs
 from .joint_estimates import JointEstimates
+from .marker_assignment import MarkerAssignment
 
 __all__ = ["subject_parameters", "bone_meshes_lab"]
 
 
-def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict) -> SubjectParameters:
-    """The model builder's input: fused centres and axes with their covariances, static markers, provenance."""
+def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict,
+                       markers: MarkerAssignment | None = None) -> SubjectParameters:
+    """The model builder's input: fused centres and axes with their covariances, static markers, provenance.
+
+    `static` : label -> `Gaussian` static marker positions (the trial's own labels); `markers`: their bodies
+    (`marker_assignment.assign_markers`), None: the Plug-in-Gait name table of the builder.
+    """
 
     sides = {}
     for s in inputs.sides:
@@ -25,17 +31,22 @@ def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict)
     subj = inputs.subject
     mass = float(subj.mass) if subj.mass else 70.0
     height = float(subj.height) if subj.height else 1.75
+    motion_centre = {j: (f"motion ({j}_centre_<side>_motion)" if any(k.startswith(f"{j}_centre_") for k in est.sources)
+                         else "Plug-in-Gait static") for j in ("knee", "ankle")}
     sources = {"hip centres": "fused: MRI (pelvis registration) x motion (hip_<side>_motion)",
-               "knee centres": "fused: MRI (femur registration) x Plug-in-Gait static",
+               "knee centres": f"fused: MRI (femur registration) x {motion_centre['knee']}",
                "knee axes": "fused: MRI (femur registration) x motion (knee_axis_<side>_motion)",
-               "ankle centres": "fused: MRI (shank registration) x Plug-in-Gait static",
+               "ankle centres": f"fused: MRI (shank registration) x {motion_centre['ankle']}",
                "ankle axes": "fused: MRI (shank registration) x motion (ankle_axis_<side>_motion)",
                "knee law": "default (model_builder.DEFAULT_KNEE_SLOPES); not fitted",
                "markers": "median static-trial positions",
                "mass": "subject.json" if subj.mass else "70 kg default (subject.json has no mass)"}
+    if inputs.marker_set is not None:
+        sources["marker set"] = inputs.marker_set_source or inputs.marker_set.name
     sources.update({k: v for k, v in est.sources.items()})
     return SubjectParameters(est.pelvis[0], est.pelvis[1], sides, {n: v.mean for n, v in static.items()},
-                             mass, height, sources, name=inputs.folder.name or "subject")
+                             mass, height, sources, name=inputs.folder.name or "subject",
+                             marker_bodies=None if markers is None else dict(markers.bodies))
 
 
 

@@ -8,6 +8,14 @@ knee and ankle centres, the Davis hip and the torsioned-tibia ankle axis
 (fall-backs without functional data or medial markers).  Each estimate carries
 its covariance (sd) with the soft-tissue-artefact terms below, calibrated on
 TRAINING phantoms (values and sources: ``calibration.json``).
+
+Without the Plug-in-Gait markers (`has_pig_markers`) the centres come from
+what the markers allow: the knee (ankle) centre is the midpoint of the lateral
+and medial epicondyle (malleolus) markers moved in by marker radius + soft
+tissue (`condylar_centre`), the knee (ankle) axis the line through them
+(`condylar_axis`); the hip without a qualifying functional trial
+(`hip_range_of_motion`) is the Harrington et al. (2007) regression of the
+pelvis markers (`harrington_hip`).
 """
 from __future__ import annotations
 
@@ -20,9 +28,12 @@ from lowerlimb.estimates import Gaussian
 from .inputs import PELVIS_MARKERS
 from .joint_estimates import Direction
 
-__all__ = ["motion_hip", "motion_knee_axis", "pig_static", "pig_centre", "aliased_static", "MOTION_HIP_STA_COV",
+__all__ = ["motion_hip", "motion_knee_axis", "pig_static", "pig_centre", "has_pig_markers", "MOTION_HIP_STA_COV",
            "MOTION_KNEE_AXIS_SD_DEG", "MOTION_ANKLE_AXIS_SD_DEG", "PIG_ANKLE_AXIS_SD_DEG", "PIG_CENTRE_SD",
-           "DAVIS_HIP_SD", "PIG_KNEE_AXIS_SD_DEG", "THIGH_MARKERS", "SHANK_MARKERS"]
+           "DAVIS_HIP_SD", "PIG_KNEE_AXIS_SD_DEG", "THIGH_MARKERS", "SHANK_MARKERS", "PELVIS_CLUSTER",
+           "hip_range_of_motion", "FUNCTIONAL_HIP_MIN_RANGE_DEG", "harrington_hip", "HARRINGTON_SD",
+           "condylar_centre", "condylar_axis", "PALPATION_SD", "CONDYLAR_CENTRE_MODEL_SD", "CONDYLAR_AXIS_SD_DEG",
+           "pelvis_rear", "subject_marker_radius"]
 
 #: soft-tissue-artefact covariance of a SCoRE hip centre (m²) in the pelvis axes (anterior, medial, up; left legs
 #: mirrored): the second moment about zero of the training legs' SCoRE errors (sds 4.9, 7.2, 10.4 mm;
@@ -44,10 +55,11 @@ PIG_CENTRE_SD = {"knee": 0.0051, "ankle": 0.0083}
 DAVIS_HIP_SD = 0.015
 PIG_KNEE_AXIS_SD_DEG = 8.0
 
-THIGH_MARKERS = ("THI", "KNE", "THIP", "THIA", "KNEM", "TRO")
-SHANK_MARKERS = ("TIB", "ANK", "ANKM", "TIBM1", "TIBM2", "TIBM3", "TTB", "HFB")
-#: static-marker aliases to the landmark names of `personalize.registration` (medial markers)
-_ALIASES = {"KNEM": "MFC", "ANKM": "MMA"}
+#: Plug-in-Gait and phantom technical markers of the thigh and shank clusters, internal names (side letter added);
+#: `markers.MarkerView.segment_markers` adds every marker the marker set puts on the segment
+THIGH_MARKERS = ("THI", "KNE", "THIP", "THIA", "MFC", "TRO")
+SHANK_MARKERS = ("TIB", "ANK", "MMA", "TIBM1", "TIBM2", "TIBM3", "TTB", "HFB")
+PELVIS_CLUSTER = PELVIS_MARKERS + ("SACR",)
 
 
 def cluster_pose(static: MarkerTrial, trials, names):
@@ -72,34 +84,36 @@ def _sta_cov(axes, side: str) -> np.ndarray:
     return A @ M @ MOTION_HIP_STA_COV @ M @ A.T
 
 
-def motion_hip(static, functional: MarkerTrial, side: str, axes=None):
+def motion_hip(static, functional: MarkerTrial, side: str, axes=None, *, pelvis=None, thigh=None):
     """SCoRE hip centre (static lab frame, m) as a `Gaussian`, and the SCoRE estimate itself.
 
     Cov = SCoRE's residual covariance + the soft-tissue-artefact term
     `MOTION_HIP_STA_COV` (pelvis axes `axes`, 3x3 columns x, y, z; the static
-    lab axes if None).
+    lab axes if None).  `pelvis`, `thigh`: the clusters' marker names (default
+    `PELVIS_CLUSTER`, `THIGH_MARKERS` with the side letter).
     """
     from kinematics.algorithms.functional import score
 
     S = side.upper()
-    P = cluster_pose(static, [functional], PELVIS_MARKERS + ("SACR",))
-    D = cluster_pose(static, [functional], tuple(S + m for m in THIGH_MARKERS))
+    P = cluster_pose(static, [functional], PELVIS_CLUSTER if pelvis is None else tuple(pelvis))
+    D = cluster_pose(static, [functional], tuple(S + m for m in THIGH_MARKERS) if thigh is None else tuple(thigh))
     if P is None or D is None:
         raise InputError(functional.source, f"SCoRE needs 3 pelvis and 3 {S} thigh markers")
     est = score(P.R, P.t, D.R, D.t)
     return Gaussian(est.proximal, est.cov_proximal + _sta_cov(axes, side)), est
 
 
-def motion_knee_axis(static, trials, side: str):
+def motion_knee_axis(static, trials, side: str, *, thigh=None, shank=None):
     """SARA knee axis (static lab frame) of the thigh and shank clusters over `trials`.
 
-    sd = √(SARA's direction sd² + `MOTION_KNEE_AXIS_SD_DEG`²).
+    sd = √(SARA's direction sd² + `MOTION_KNEE_AXIS_SD_DEG`²).  `thigh`, `shank`: the clusters' marker names
+    (default `THIGH_MARKERS`, `SHANK_MARKERS` with the side letter).
     """
     from kinematics.algorithms.functional import sara
 
     S = side.upper()
-    P = cluster_pose(static, trials, tuple(S + m for m in THIGH_MARKERS))
-    D = cluster_pose(static, trials, tuple(S + m for m in SHANK_MARKERS))
+    P = cluster_pose(static, trials, tuple(S + m for m in THIGH_MARKERS) if thigh is None else tuple(thigh))
+    D = cluster_pose(static, trials, tuple(S + m for m in SHANK_MARKERS) if shank is None else tuple(shank))
     if P is None or D is None:
         raise InputError(static.source, f"SARA needs 3 {S} thigh and 3 {S} shank markers")
     est = sara(P.R, P.t, D.R, D.t)
@@ -107,26 +121,197 @@ def motion_knee_axis(static, trials, side: str):
 
 
 
-def aliased_static(static: MarkerTrial) -> MarkerTrial:
-    names = list(static.names)
-    pos = [static.positions]
-    for s in "RL":
-        for a, b in _ALIASES.items():
-            if s + a in static.names and s + b not in static.names:
-                names.append(s + b)
-                pos.append(static.marker(s + a)[:, None])
-    return MarkerTrial(tuple(names), np.concatenate(pos, axis=1), static.rate, static.time, static.source, static.extra)
-
-
-
-def pig_static(inputs):
-    """Plug-in-Gait reconstruction of the static trial (knee and ankle centres, torsioned tibia)."""
+def pig_static(inputs, view=None):
+    """Plug-in-Gait reconstruction of the static trial (knee and ankle centres, torsioned tibia), or None when
+    neither the static trial nor its internal-name view (`view`, a `markers.MarkerView`) has the Plug-in-Gait
+    markers (`has_pig_markers`)."""
     from kinematics.gait.reconstruction import reconstruct
 
-    return reconstruct(inputs.static, "pig", static=inputs.static, subject=inputs.subject, check_static=False)
+    trial = next((t for t in (inputs.static, getattr(view, "static", None)) if t is not None and has_pig_markers(t)),
+                 None)
+    if trial is None:
+        return None
+    return reconstruct(trial, "pig", static=trial, subject=inputs.subject, check_static=False)
 
 
 
 def pig_centre(rec, joint: str, side: str) -> Gaussian:
     """Plug-in-Gait knee or ankle centre of the static reconstruction `rec` (median over frames), sd `PIG_CENTRE_SD`."""
     return Gaussian.isotropic(np.median(rec.centres[f"{joint}_{side}"], axis=0), PIG_CENTRE_SD[joint])
+
+
+def has_pig_markers(trial: MarkerTrial) -> bool:
+    """Whether `trial` carries the Plug-in-Gait lower-body markers (`kinematics.gait.pig.LOWER_BODY_MARKERS`, and
+    RPSI + LPSI or SACR) that `pig_static` needs."""
+    from kinematics.gait.pig import LOWER_BODY_MARKERS
+
+    names = set(trial.names)
+    return all(m in names for m in LOWER_BODY_MARKERS) and ("SACR" in names or {"RPSI", "LPSI"} <= names)
+
+
+def subject_marker_radius(inputs) -> float | None:
+    """Marker radius (m) from the subject's marker diameter (subject.json), or None (the default radius)."""
+    from lowerlimb.geometry import marker_radius
+
+    d = getattr(inputs.subject, "marker_diameter", None)
+    return marker_radius(d) if d else None
+
+
+def pelvis_rear(static: dict):
+    """The pelvis' posterior reference (static lab, m) and what it is: mid-PSIS, else the sacral marker."""
+    if "RPSI" in static and "LPSI" in static:
+        return 0.5 * (static["RPSI"].mean + static["LPSI"].mean), "mid-PSIS"
+    if "SACR" in static:
+        return np.asarray(static["SACR"].mean, float), "sacral marker"
+    raise InputError("static trial", "the pelvis needs RPSI and LPSI or a sacral marker (SACR, V.Sacral)")
+
+
+# --------------------------------------------------------------------------- hip without a functional trial
+#: the smallest hip ranges of motion (deg; 2.5-97.5 percentile spans of the thigh cluster's rotation in the pelvis
+#: cluster) for which a trial's SCoRE hip centre is used.  The functional hip centre's error grows steeply as the
+#: range shrinks, most along the axis the motion does not explore: Piazza et al. 2004 (J Biomech 37:349, errors grow
+#: as the range falls below about 30 deg), Camomilla et al. 2006 (J Biomech 39:1096, flexion-extension AND
+#: ab-adduction amplitudes of the star-arc motion they recommend).  Walking (about 40 deg flexion-extension but
+#: about 10-15 deg ab-adduction) does not qualify: SCoRE on a walk put the hips 111-127 mm off (issue #17, point 7)
+FUNCTIONAL_HIP_MIN_RANGE_DEG = {"flexion": 30.0, "abduction": 20.0}
+
+
+def hip_range_of_motion(static: MarkerTrial, trial: MarkerTrial, side: str, axes=None, *, pelvis=None,
+                        thigh=None) -> dict | None:
+    """Ranges (deg) of the thigh in the pelvis over `trial`: {"flexion": ..., "abduction": ...}, or None
+    without 3 pelvis and 3 thigh markers.
+
+    R = R_pelvisᵀ R_thigh (cluster poses, identity in the static pose) in the pelvis axes `axes` (columns x
+    forward, y left, z up), Cardan Y-X-Z: flexion about y, ab/adduction about x; each range is the 2.5-97.5
+    percentile span over the frames.
+    """
+    from scipy.spatial.transform import Rotation
+
+    S = side.upper()
+    P = cluster_pose(static, [trial], PELVIS_CLUSTER if pelvis is None else tuple(pelvis))
+    D = cluster_pose(static, [trial], tuple(S + m for m in THIGH_MARKERS) if thigh is None else tuple(thigh))
+    if P is None or D is None:
+        return None
+    A = np.eye(3) if axes is None else np.asarray(axes, float)
+    R = np.einsum("ji,fjk->fik", A, np.einsum("fji,fjk->fik", P.R, D.R)) @ A
+    ok = np.all(np.isfinite(R), axis=(1, 2))
+    if ok.sum() < 10:
+        return None
+    ang = np.degrees(Rotation.from_matrix(R[ok]).as_euler("YXZ"))
+    span = lambda a: float(np.percentile(a, 97.5) - np.percentile(a, 2.5))  # noqa: E731
+    return {"flexion": span(ang[:, 0]), "abduction": span(ang[:, 1])}
+
+
+#: Harrington et al. (2007, J Biomech 40:595) single-variable regression of the hip centre on pelvic width PW and
+#: depth PD (mm), in the pelvis frame at the mid-ASIS (x anterior, y superior, z lateral): x = -0.24 PD - 9.9,
+#: y = -0.30 PW - 10.9, z = 0.33 PW + 7.3
+HARRINGTON = {"x": (-0.24, -9.9), "y": (-0.30, -10.9), "z": (0.33, 7.3)}
+#: per-axis sd of the regression (m): 3-D error 12.3 +- 5.9 mm on 67 pelvic CTs (Mantovani, Ng & Lamontagne 2016,
+#: Gait Posture 44:48), i.e. sqrt((12.3² + 5.9²) / 3) per axis
+HARRINGTON_SD = float(np.sqrt((12.3**2 + 5.9**2) / 3.0)) * 1e-3
+
+
+def harrington_hip(static: dict, side: str, axes, skin: dict | None = None, marker_radius: float | None = None):
+    """Hip centre (static lab, m) by the Harrington et al. (2007) regression of the pelvis markers, as a `Gaussian`.
+
+    The markers are moved in to the bone first: the mid-ASIS back by t_ASIS + r, the mid-PSIS (or the sacral
+    marker) forward by t_PSIS + r (t the soft tissue: `skin` {marker: (mean, sd) m}, else the site prior
+    `personalize.registration.skin_prior`; r the marker radius), so PW = |RASI - LASI| and PD = the
+    anterior distance mid-ASIS - mid-PSIS are the bony ones the regression was fitted on.
+
+    Cov = A diag(σ²) Aᵀ + J Σ_t Jᵀ: σ = `HARRINGTON_SD` per axis, and the tissue uncertainty through
+    x_hip = o - (t_A + r) - 0.24 (PD - t_A - t_P - 2 r): ∂x/∂t_A = -0.76, ∂x/∂t_P = +0.24 (pelvis x axis).
+    """
+    from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
+
+    from ..registration import skin_prior
+
+    r = DEFAULT_MARKER_RADIUS if marker_radius is None else float(marker_radius)
+    A = np.asarray(axes, float)
+    x, y, z = A[:, 0], A[:, 1], A[:, 2]
+    rear, _ = pelvis_rear(static)
+
+    def tissue(name):
+        v = (skin or {}).get(name)
+        return tuple(v) if v is not None else skin_prior(name)
+
+    tA = [tissue(n) for n in ("RASI", "LASI")]
+    tP = [tissue(n) for n in (("RPSI", "LPSI") if "RPSI" in static and "LPSI" in static else ("SACR", "SACR"))]
+    tA_m, tA_sd = np.mean([t[0] for t in tA]), np.sqrt(np.mean([t[1] ** 2 for t in tA]))
+    tP_m, tP_sd = np.mean([t[0] for t in tP]), np.sqrt(np.mean([t[1] ** 2 for t in tP]))
+    o = 0.5 * (static["RASI"].mean + static["LASI"].mean)
+    pw = float(np.linalg.norm(static["RASI"].mean - static["LASI"].mean))
+    pd = float((o - rear) @ x) - (tA_m + tP_m + 2 * r)
+    o_bone = o - (tA_m + r) * x
+    (ax_, bx), (ay, by), (az, bz) = HARRINGTON["x"], HARRINGTON["y"], HARRINGTON["z"]
+    lateral = -y if side == "r" else y
+    c = o_bone + 1e-3 * ((ax_ * pd * 1e3 + bx) * x + (ay * pw * 1e3 + by) * z + (az * pw * 1e3 + bz) * lateral)
+    cov = HARRINGTON_SD**2 * np.eye(3) + ((0.76 * tA_sd) ** 2 + (0.24 * tP_sd) ** 2) * np.outer(x, x)
+    return Gaussian(c, cov)
+
+
+# --------------------------------------------------------------------------- knee and ankle from condyle markers
+#: per-axis sd (m) of a palpated marker's position in the skin plane, by landmark: 10 mm rms (2-D) at the femoral
+#: epicondyles, 5 mm at the malleoli, after the inter-examiner dispersions of Della Croce, Cappozzo & Kerrigan 1999
+#: (Med Biol Eng Comput 37:155; rms 6-21 mm, largest at the epicondyles)
+PALPATION_SD = {"KNE": 0.010 / np.sqrt(2.0), "MFC": 0.010 / np.sqrt(2.0), "ANK": 0.005 / np.sqrt(2.0),
+                "MMA": 0.005 / np.sqrt(2.0)}
+#: isotropic sd (m) of the distance between the epicondyle (malleolus) midpoint and the joint centre of a model
+#: (the flexion axis passes near, not through, the prominences; the most prominent malleolar points lie above the
+#: talocrural axis).  Chosen on realistic subject 002 (ICL_MRI bones, ior set): per-axis rms error of the midpoints
+#: 8.1 mm (knee) and 10.1 mm (ankle, +16 mm vertical), minus the palpation and tissue terms above; checked on 005
+#: (cast, obese): 8.5 and 11.2 mm.  Not from a published source
+CONDYLAR_CENTRE_MODEL_SD = {"knee": 0.006, "ankle": 0.010}
+#: angle (deg) between the transepicondylar (transmalleolar) line and the knee flexion (talocrural) axis on top of
+#: the palpation: a few degrees (Churchill et al. 1998, Clin Orthop 356:111: transepicondylar vs flexion axis;
+#: Inman 1976 for the ankle): assumed, not calibrated
+CONDYLAR_AXIS_SD_DEG = {"knee": 4.0, "ankle": 4.0}
+#: lateral / medial landmark pairs of each joint
+CONDYLES = {"knee": ("KNE", "MFC"), "ankle": ("ANK", "MMA")}
+
+
+def condylar_centre(static: dict, joint: str, side: str, skin: dict | None = None,
+                    marker_radius: float | None = None) -> Gaussian:
+    """Knee (ankle) centre: the midpoint of the lateral and medial epicondyle (malleolus) markers moved in along
+    their line by marker radius + soft tissue (static lab, m), as a `Gaussian`.
+
+    c = ½ [(m_l - (t_l + r) u) + (m_m + (t_m + r) u)], u = unit(m_l - m_m); t the tissue (`skin` {marker: (mean,
+    sd)}, else `personalize.registration.skin_prior`).  Cov = ¼ (C_l + C_m) + ¼ (sd_l² + sd_m²) u uᵀ
+    + ¼ (p_l² + p_m²) (I - u uᵀ) + s² I, with C the markers' static covariances, p `PALPATION_SD` in the skin
+    plane and s `CONDYLAR_CENTRE_MODEL_SD`.
+    """
+    from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
+
+    from ..registration import skin_prior
+
+    S = side.upper()
+    lat, med = (S + n for n in CONDYLES[joint])
+    missing = [n for n in (lat, med) if n not in static]
+    if missing:
+        raise InputError("static trial", f"{joint} centre needs the {' and '.join(missing)} marker(s)")
+    r = DEFAULT_MARKER_RADIUS if marker_radius is None else float(marker_radius)
+    ml, mm = static[lat], static[med]
+    u = ml.mean - mm.mean
+    u = u / np.linalg.norm(u)
+    tl = tuple((skin or {}).get(lat) or skin_prior(lat))
+    tm = tuple((skin or {}).get(med) or skin_prior(med))
+    c = 0.5 * ((ml.mean - (tl[0] + r) * u) + (mm.mean + (tm[0] + r) * u))
+    P = np.eye(3) - np.outer(u, u)
+    pl, pm = (PALPATION_SD[n] for n in CONDYLES[joint])
+    cov = (0.25 * (ml.cov + mm.cov) + 0.25 * (tl[1] ** 2 + tm[1] ** 2) * np.outer(u, u)
+           + 0.25 * (pl**2 + pm**2) * P + CONDYLAR_CENTRE_MODEL_SD[joint] ** 2 * np.eye(3))
+    return Gaussian(c, cov)
+
+
+def condylar_axis(static: dict, joint: str, side: str) -> Direction:
+    """Knee (ankle) axis: the line through the lateral and medial epicondyle (malleolus) markers, lateral minus
+    medial, sd = √(atan(√(p_l² + p_m²) / width)² + `CONDYLAR_AXIS_SD_DEG`²)."""
+    S = side.upper()
+    lat, med = (S + n for n in CONDYLES[joint])
+    missing = [n for n in (lat, med) if n not in static]
+    if missing:
+        raise InputError("static trial", f"{joint} axis needs the {' and '.join(missing)} marker(s)")
+    d = static[lat].mean - static[med].mean
+    pl, pm = (PALPATION_SD[n] for n in CONDYLES[joint])
+    sd = np.degrees(np.arctan(np.hypot(pl, pm) / max(np.linalg.norm(d), 1e-3)))
+    return Direction(d, float(np.hypot(sd, CONDYLAR_AXIS_SD_DEG[joint])))

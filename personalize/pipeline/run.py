@@ -16,7 +16,7 @@ __all__ = ["run_subject", "read_subject_bones", "build_model"]
 
 
 def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[[str], None] | None = None,
-                report: bool = True, overwrite: bool = False) -> dict:
+                report: bool = True, overwrite: bool = False, marker_set=None) -> dict:
     """Run the whole pipeline on one subject folder; outputs are staged into `out`.
 
     Parameters
@@ -26,6 +26,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     progress : callable(str), called at each stage
     report : write report.html
     overwrite : replace a non-empty `out` whole (else it is refused before any work)
+    marker_set : preset name, markers.json path or `MarkerSet` for a folder without ``markers.json``
+        (default: the preset the static trial's labels fit; `personalize.pipeline.markers`)
 
     Returns
     -------
@@ -43,7 +45,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
 
     check_output_dir(out, inputs=[subject_dir], overwrite=overwrite)
     try:
-        return _run_subject(subject_dir, out, progress=progress, report=report)
+        return _run_subject(subject_dir, out, progress=progress, report=report, marker_set=marker_set)
     except (InputError, FitError) as exc:
         if report:
             write_refusal_report(Path(out), subject_dir, exc)
@@ -63,20 +65,21 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
         raise
 
 
-def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dict:
+def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker_set=None) -> dict:
     """`run_subject` without the refusal report."""
     from ..bone_set import write_bone_files
     from ..evaluation.truth import chain_angle_errors, compare_with_truth, truth_in_static_lab
     from ..model_builder import save_model_json, save_model_osim, write_meshes
     from ..outputs import replaced_dir
     from ..parameter_fusion import fuse_segment_lengths
+    from .marker_assignment import model_markers
     from .model import bone_meshes_lab
     from .model_checks import check_model
     from .trials import chain_blend, solve_trials
 
     say = progress or (lambda m: None)
     say("reading inputs")
-    inputs = find_inputs(subject_dir)
+    inputs = find_inputs(subject_dir, marker_set)
     say(f"lab: {inputs.lab.describe()}")
     volume = label_volume(inputs)        # read once: the bone surfaces and the soft-tissue measurement use it
     inputs, bones = read_subject_bones(inputs, volume, say)
@@ -87,9 +90,11 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
     joints = {k: j.without_model_error() for k, j in bones.joints.items()}
     est = estimate_joints(inputs, bones.surfaces, bones.landmarks, joints, say, bones.dropped, skin=skin)
     gate_registrations(inputs, est)
+    meshes_lab = bone_meshes_lab(bones.surfaces, est, inputs.sides)
+    markers = model_markers(inputs, meshes_lab)
     say("building the model")
     try:
-        pm, intercepts = build_model(inputs, est, joints, say)
+        pm, intercepts = build_model(inputs, est, joints, say, markers)
     except InputError as exc:
         if exc.source != "model":
             raise
@@ -103,7 +108,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True) -> dic
     summary = SubjectSummary(inputs.folder.name, str(inputs.folder), list(inputs.sides), sorted(inputs.trials),
                              inputs.functional, bones.dropped, notes, pm.parameters.sources, est, lengths, intercepts,
                              lab=inputs.lab.to_json(), measurements=_measurements_json(inputs))
-    meshes_lab = bone_meshes_lab(bones.surfaces, est, inputs.sides)
+    summary.markers = markers.to_json()
     say("checking the model against the bones")
     check_model(pm, meshes_lab, inputs.folder, skin)
     truth = truth_in_static_lab(inputs)
@@ -180,18 +185,19 @@ def _subject_measurements(inputs: SubjectInputs, bones) -> tuple[object, dict]:
     return measure_from_bones(given, points, source=inputs.folder / "subject.json")
 
 
-def build_model(inputs: SubjectInputs, est, joints: dict, say) -> tuple[object, dict]:
+def build_model(inputs: SubjectInputs, est, joints: dict, say, markers=None) -> tuple[object, dict]:
     """The personalised model (`personalize.model_builder.PersonalModel`) with fitted and fused knee laws.
 
     Built once from the joint estimates to fit the knee laws (`knee_law.fit_knee_laws` on the
     non-functional trials), then again with the laws.  Returns the model and side -> `KneeIntercept`.
+    `markers` : the static markers' bodies (`marker_assignment.MarkerAssignment`), None: Plug-in-Gait names.
     """
     from ..model_builder import build_personal_model
     from ..registration import static_marker_positions
     from .knee_law import fit_knee_laws, fuse_knee_intercepts
     from .model import subject_parameters
 
-    params = subject_parameters(inputs, est, static_marker_positions(inputs.static))
+    params = subject_parameters(inputs, est, static_marker_positions(inputs.static), markers)
     pm = build_personal_model(params)
     standing: dict = {}
     laws = fit_knee_laws(pm, [t for k, t in sorted(inputs.trials.items()) if not k.startswith("functional")], say,

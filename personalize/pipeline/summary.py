@@ -32,6 +32,7 @@ class SubjectSummary:
     truth : `personalize.evaluation.truth.TruthComparison` or None
     lab : `kinematics.gait.lab_frame.LabFrame.to_json` of the trials' lab
     measurements : Plug-in-Gait measurement -> {"value": m, "source": subject file or how the bones gave it}
+    markers : `pipeline.marker_assignment.MarkerAssignment.to_json`: each static marker's body and why
     """
 
     subject: str
@@ -50,6 +51,7 @@ class SubjectSummary:
     truth: object = None
     lab: dict | None = None
     measurements: dict | None = None
+    markers: dict | None = None
 
     @property
     def ik_rms_mm(self) -> float:
@@ -91,6 +93,7 @@ class SubjectSummary:
                **({"subject_measurements": self.measurements} if self.measurements is not None else {}),
                "trials": list(self.trials), "functional_trial": self.functional_trial,
                "dropped_joints": dict(self.dropped_joints), "notes": list(self.notes), "sources": self.sources,
+               **({"markers": self.markers} if self.markers is not None else {}),
                "estimates": self.estimates_json()}
         if est.skin:
             doc["skin_thickness"] = {k: v.summary() for k, v in est.skin.items()}
