@@ -37,8 +37,8 @@ def cache_subject(d: Path, out_json: Path, say=print) -> dict:
     from personalize.bone_set import read_bone_set
     from personalize.evaluation.truth import truth_in_static_lab
     from personalize.pipeline import estimate_joints, find_inputs, foot, hip, knee, motion
-    from personalize.pipeline.inputs import PELVIS_MARKERS
-    from personalize.pipeline.motion import THIGH_MARKERS, cluster_pose
+    from personalize.pipeline.markers import marker_view
+    from personalize.pipeline.motion import PELVIS_CLUSTER, THIGH_MARKERS, cluster_pose
     from kinematics.algorithms.functional import score
 
     t0 = time.perf_counter()
@@ -63,13 +63,14 @@ def cache_subject(d: Path, out_json: Path, say=print) -> dict:
                          "MOTION_KNEE_AXIS_SD_DEG": motion.MOTION_KNEE_AXIS_SD_DEG,
                          "MRI_ANKLE_AXIS_SD_SCALE": foot.MRI_ANKLE_AXIS_SD_SCALE,
                          "MOTION_ANKLE_AXIS_SD_DEG": motion.MOTION_ANKLE_AXIS_SD_DEG}}
-    fun = inputs.trials[inputs.functional]
+    view = marker_view(inputs)          # the trials under internal names (RKNEM -> RMFC), as the pipeline sees them
+    fun = view.trials[inputs.functional]
     poses = {}
     for s in est.centres:
         S = s.upper()
         h = est.centres[s]["hip"]
-        P = cluster_pose(inputs.static, [fun], PELVIS_MARKERS + ("SACR",))
-        D = cluster_pose(inputs.static, [fun], tuple(S + m for m in THIGH_MARKERS))
+        P = cluster_pose(view.static, [fun], view.segment_markers("pelvis", PELVIS_CLUSTER))
+        D = cluster_pose(view.static, [fun], view.segment_markers(f"femur_{s}", tuple(S + m for m in THIGH_MARKERS)))
         sc = score(P.R, P.t, D.R, D.t)
         poses.update({f"{s}_PR": P.R, f"{s}_Pt": P.t, f"{s}_DR": D.R, f"{s}_Dt": D.t})
         ka = est.axes[s]["knee"]
