@@ -20,7 +20,7 @@ def _trial(labels, source="static.c3d", frames=5, seed=0):
     return MarkerTrial(tuple(labels), pos, 100.0, np.arange(frames) / 100.0, source)
 
 
-@pytest.mark.parametrize("name", ["pig", "ior", "cast", "opensim"])
+@pytest.mark.parametrize("name", ["pig", "pig-sacr", "ior", "cast", "opensim"])
 def test_preset_detected_from_the_labels(name):
     labels = [k for k, v in preset(name).markers.items() if v.segment != "torso"]   # torso markers not required
     m = detect_marker_set(_trial(labels))
@@ -220,3 +220,17 @@ def test_a_lab_marker_set_runs_end_to_end(own_labels_run):
                                                                     if k != "femur_r")
     assert len(bodies) == 2 * len(_OWN)
     assert s["ik"]["gait_01"]["rms_mean_mm"] < 10.0
+
+
+def test_real_lab_files_detected(shared_data):
+    """OpenSim's gait2392 static (TRC, OpenSim names) and a Vicon Plug-in-Gait static (C3D, upper body too)."""
+    from kinematics.io.c3d import read_c3d
+    from kinematics.io.storage import read_trc
+
+    osim = detect_marker_set(read_trc(shared_data / "opensim_gait2392" / "subject01_static.trc"))
+    pig = detect_marker_set(read_c3d(shared_data / "mocap_pig" / "Static_trial.c3d"))
+    assert (osim.marker_set.name, osim.sides, osim.found) == ("opensim", ("r", "l"), 39)   # torso markers too
+    assert (pig.marker_set.name, pig.sides, pig.found) == ("pig", ("r", "l"), 16)
+    # the walk lacks the medial and lateral knee and ankle markers (static-only in that lab): named as missing
+    walk = detect_marker_set(read_trc(shared_data / "opensim_gait2392" / "subject01_walk1.trc"))
+    assert not walk.fits and set(walk.missing) == {"R.Knee.Lat", "R.Knee.Med", "R.Ankle.Lat", "R.Ankle.Med"}

@@ -20,6 +20,7 @@ Presets (`PRESETS`, `preset`):
 
 * ``pig`` -- Vicon Plug-in-Gait lower body (Davis et al. 1991): ASI, PSI, THI
   and TIB wands, KNE, ANK, HEE, TOE;
+* ``pig-sacr`` -- the same with one sacral marker SACR instead of RPSI and LPSI;
 * ``ior`` -- a bony-landmark set as hospital gait labs use it (after the IOR
   foot and lower-limb protocol, Leardini et al. 2007, Gait Posture 25:453):
   ASI, PSI, TRO, KNE, MFC, TUB, HFB, SHN (lateral shank skin marker), ANK, MMA,
@@ -129,6 +130,14 @@ def _pig() -> MarkerSet:
     return MarkerSet("pig", _sided(rows))
 
 
+def _pig_sacr() -> MarkerSet:
+    """Plug-in-Gait with one sacral marker SACR instead of the two PSIS markers (as Plug-in-Gait allows)."""
+    pig = _pig().markers
+    m = {k: v for k, v in pig.items() if not k.endswith("PSI")}
+    m = {"SACR": MarkerDef("pelvis"), **m}
+    return MarkerSet("pig-sacr", m)
+
+
 def _ior() -> MarkerSet:
     rows = [("{S}ASI", "pelvis", "ASI", False), ("{S}PSI", "pelvis", "PSI", False),
             ("{S}TRO", "femur", "TRO", False), ("{S}KNE", "femur", "KNE", False), ("{S}MFC", "femur", "MFC", False),
@@ -167,11 +176,11 @@ def _opensim() -> MarkerSet:
 
 
 #: preset name -> builder
-PRESETS = {"pig": _pig, "ior": _ior, "cast": _cast, "opensim": _opensim}
+PRESETS = {"pig": _pig, "pig-sacr": _pig_sacr, "ior": _ior, "cast": _cast, "opensim": _opensim}
 
 
 def preset(name: str) -> MarkerSet:
-    """The preset marker set `name` (``pig``, ``ior``, ``cast``, ``opensim``)."""
+    """The preset marker set `name` (``pig``, ``pig-sacr``, ``ior``, ``cast``, ``opensim``)."""
     key = str(name).strip().lower()
     if key not in PRESETS:
         raise InputError("--marker-set", f"{name!r} is not a preset ({', '.join(PRESETS)}) nor a markers.json file")
