@@ -239,3 +239,36 @@ def test_plates_to_internal_rotates_every_vector(folders):
     np.testing.assert_array_equal(q.corners, p.corners @ R.T)
     assert plates_to_internal(plates, find_inputs(folders["z"]).lab) is plates
     assert to_internal(y.static, find_inputs(folders["z"]).lab) is y.static
+
+
+def test_ground_reactions_of_a_y_up_lab(shared_data):
+    """mocap_pig's plates turned into a Y-up lab give the Z-up lab's ground reactions in OpenSim's ground
+    (force, centre of pressure, free moment: the vertical no longer assumed Z), and `lab_to_ground` maps each
+    lab's vertical to the model's."""
+    from types import SimpleNamespace
+
+    from kinematics.gait.inverse_dynamics import lab_to_ground
+    from kinematics.gait.plate_contacts import assign_feet
+    from kinematics.io.external_loads import LAB_TO_OPENSIM, axis_permutation, loads_from_plates
+    from kinematics.io.forceplates import read_force_plates
+
+    path = shared_data / "mocap_pig" / "Movement_trial.c3d"
+    plates, markers = read_force_plates(path), read_c3d(path)
+    contacts = assign_feet(plates, markers)
+    ref, _ = loads_from_plates(plates, contacts, rotation=LAB_TO_OPENSIM)
+    Q = axis_permutation(np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]))     # Z-up lab -> Y-up lab
+    np.testing.assert_array_equal(Q, [[1, 0, 0], [0, 0, 1], [0, -1, 0]])
+    yup = plates.rotated(Q)
+    assert np.allclose(yup[0].normal, [0, 1, 0])
+    got, _ = loads_from_plates(yup, contacts, rotation=LAB_TO_OPENSIM @ Q.T, up=(0.0, 1.0, 0.0))
+    assert len(ref) == len(got) >= 1
+    for a, b in zip(ref, got):
+        for f in ("force", "point", "torque"):
+            np.testing.assert_allclose(getattr(b, f), getattr(a, f), atol=1e-9, err_msg=f)
+        assert np.nanmax(a.force[:, 1]) > 400.0          # a stance's vertical reaction, along OpenSim's Y
+    opensim = SimpleNamespace(gravity=np.array([0.0, -9.80665, 0.0]), name="gait2392")
+    internal = SimpleNamespace(gravity=np.array([0.0, 0.0, -9.80665]), name="personalize")
+    np.testing.assert_array_equal(lab_to_ground(opensim), LAB_TO_OPENSIM)
+    np.testing.assert_array_equal(lab_to_ground(opensim, (0.0, 1.0, 0.0)), np.eye(3))
+    np.testing.assert_array_equal(lab_to_ground(internal), np.eye(3))
+    np.testing.assert_array_equal(lab_to_ground(internal, (0.0, 1.0, 0.0)), LAB_TO_OPENSIM.T)

@@ -277,24 +277,25 @@ def write_joint_powers(path, result: InverseDynamicsResult, per_kg: bool = False
                                    f"model mass {result.mass:.3f} kg"])
 
 
-def lab_to_ground(model: Model) -> np.ndarray:
-    """Rotation from a C3D lab (X forward, Z up) to the model's ground, from the model's gravity.
+def lab_to_ground(model: Model, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Rotation from a lab whose vertical is `up` (a signed lab axis; C3D labs +Z) to the model's ground.
 
-    Gravity along -Z: the identity (models built from the lab, as
-    `personalize.model_builder` makes them); along -Y (OpenSim's gait
-    models): x' = x, y' = z, z' = -y (the usual C3D to OpenSim export).
+    The model's vertical is minus its gravity.  The rotation is the signed permutation that takes the
+    lab's vertical to the model's and the lab's first horizontal axis (X unless X is up) to the model's
+    (`kinematics.io.external_loads.axis_permutation`): a Z-up lab to a gravity -Z model is the identity;
+    to OpenSim's -Y gravity x' = x, y' = z, z' = -y (the usual C3D to OpenSim export, ``LAB_TO_OPENSIM``);
+    a Y-up lab to a -Y model the identity.  It assumes the kinematics were solved on the lab's markers
+    re-expressed the same way (as OpenSim's exports and `personalize ik` on a lab's own TRC do).
     """
-    from kinematics.io.external_loads import LAB_TO_OPENSIM
+    from kinematics.io.external_loads import axis_permutation
 
     g = np.asarray(model.gravity, float)
     if not np.linalg.norm(g) > 0:
         raise InputError(model.name or "model", "has no gravity: cannot tell its vertical")
     u = -g / np.linalg.norm(g)
-    if np.allclose(u, [0.0, 0.0, 1.0], atol=1e-6):
-        return np.eye(3)
-    if np.allclose(u, [0.0, 1.0, 0.0], atol=1e-6):
-        return LAB_TO_OPENSIM.copy()
-    raise InputError(model.name or "model", f"gravity {g} is neither along -Z nor -Y: the lab-to-ground rotation is unknown")
+    if np.abs(u).max() < 1.0 - 1e-6:
+        raise InputError(model.name or "model", f"gravity {g} is not along an axis: the lab-to-ground rotation is unknown")
+    return axis_permutation(np.asarray(up, float), np.round(u))
 
 
 @dataclass(frozen=True)
@@ -324,7 +325,9 @@ def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict 
     would put low-load centres of pressure outside the plates), each loaded
     interval is assigned to a foot from the file's foot markers
     (`assign_feet`), the wrenches are summed per foot (`loads_from_plates`)
-    and rotated into the model's ground (`lab_to_ground`).  Feet go to
+    and rotated into the model's ground (`lab_to_ground`).  The lab's vertical is read from the
+    file's markers (`kinematics.gait.lab_frame.detect_lab`; +Z, the C3D convention, when they do not
+    tell it, with a note): a Y-up lab's plates are read and rotated as such.  Feet go to
     ``calcn_r`` / ``calcn_l`` (``bodies`` to change).  A file without plates
     gives no loads and a note.
     """
@@ -333,22 +336,25 @@ def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict 
     from kinematics.gait.plate_contacts import assign_feet
     from kinematics.io.forceplates import read_force_plates
 
-    plates = read_force_plates(path, threshold=threshold, at="points")
+    markers = read_c3d(path)
+    lab_notes: list[str] = []
+    up = _lab_up(markers, lab_notes)
+    plates = read_force_plates(path, threshold=threshold, at="points", up=up)
     notes = list(plates.notes)
     for p in plates:
         notes += [f"{p.name}: {n}" for n in p.notes]
     if len(plates) == 0:
         return TrialLoads((), (), (), tuple(notes))
+    notes += lab_notes
     bodies = dict(bodies or {"R": "calcn_r", "L": "calcn_l"})
     missing = [b for b in bodies.values() if b not in model.body_names]
     if missing:
         raise InputError(model.name or "model", f"has no body {', '.join(missing)} to apply the ground reactions to")
-    markers = read_c3d(path)
     contacts = assign_feet(plates, markers)
     if not contacts:
         notes.append(f"no force plate is loaded above {threshold:g} N: no ground reactions, kinematics only")
         return TrialLoads((), (), (), tuple(notes))
-    loads, _ = loads_from_plates(plates, contacts, bodies, rotation=lab_to_ground(model))
+    loads, _ = loads_from_plates(plates, contacts, bodies, rotation=lab_to_ground(model, up), up=up)
     notes += [c.describe() for c in contacts]
     exclude = [(c.start_time, c.end_time, f"plate {c.plate + 1}: {', '.join(c.flags) or 'no foot'}")
                for c in contacts if not c.usable]
@@ -356,6 +362,20 @@ def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict 
         for t0, t1 in _stance_off_plates(markers, contacts, side):
             exclude.append((t0, t1, f"{side} foot on the ground off the force plates (ground reaction unknown)"))
     return TrialLoads(tuple(loads), tuple(contacts), tuple(sorted(exclude)), tuple(notes))
+
+
+def _lab_up(markers, notes: list) -> np.ndarray:
+    """The trial's vertical read from its markers (`kinematics.gait.lab_frame.detect_lab`); +Z (the C3D
+    convention) with a note when the markers do not tell it."""
+    from kinematics.gait.lab_frame import detect_lab
+
+    try:
+        lab = detect_lab(None, [markers])
+    except InputError as exc:
+        notes.append(f"lab vertical not readable from the markers ({exc.problem}): +Z assumed")
+        return np.array([0.0, 0.0, 1.0])
+    notes.append(f"lab: {lab.describe()}")
+    return np.asarray(lab.up, float)
 
 
 def _stance_off_plates(markers, contacts, side: str, max_speed: float = 0.5, min_s: float = 0.05,

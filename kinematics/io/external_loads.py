@@ -31,6 +31,8 @@ from kinematics.io.storage import read_mot, write_sto
 
 __all__ = [
     "LAB_TO_OPENSIM",
+    "axis_permutation",
+    "z_up_from",
     "ExternalLoad",
     "loads_from_plates",
     "read_external_loads",
@@ -261,7 +263,34 @@ def _xml_escape(s: str) -> str:
     return str(s).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
 
 
-def loads_from_plates(plates, contacts, bodies=None, rotation=LAB_TO_OPENSIM) -> tuple[list[ExternalLoad], list[str]]:
+def z_up_from(up) -> np.ndarray:
+    """A proper rotation (a signed permutation) taking the lab vertical `up` (a signed lab axis) to +Z; the
+    identity for +Z, else keeping the first lab axis that is horizontal."""
+    u = np.asarray(up, float)
+    return axis_permutation(u, np.array([0.0, 0.0, 1.0]))
+
+
+def axis_permutation(up_from: np.ndarray, up_to: np.ndarray) -> np.ndarray:
+    """The signed permutation R (det +1) with ``R @ up_from = up_to`` that maps the first horizontal axis of
+    the source frame to the first horizontal axis of the target (X to X when both have X horizontal).
+
+    Raises InputError when a vertical is not along a signed axis.
+    """
+    out = []
+    for u in (np.asarray(up_from, float), np.asarray(up_to, float)):
+        k = int(np.argmax(np.abs(u)))
+        if not np.isclose(abs(u[k]), np.linalg.norm(u), atol=1e-6):
+            raise InputError("vertical", f"{u.tolist()} is not along a signed axis")
+        e = np.zeros(3)
+        e[k] = np.sign(u[k])
+        h = np.eye(3)[0 if k != 0 else 1]
+        out.append(np.column_stack([h, e, np.cross(h, e)]))
+    A, B = out
+    return B @ A.T
+
+
+def loads_from_plates(plates, contacts, bodies=None, rotation=LAB_TO_OPENSIM,
+                      up=(0.0, 0.0, 1.0)) -> tuple[list[ExternalLoad], list[str]]:
     """One ExternalLoad per foot from the plates' usable contacts (`kinematics.gait.plate_contacts.assign_feet`).
 
     Each foot's load is the sum, frame by frame, of the plate wrenches of the
@@ -276,6 +305,8 @@ def loads_from_plates(plates, contacts, bodies=None, rotation=LAB_TO_OPENSIM) ->
     ----------
     bodies : dict side -> body name; default ``{"R": "calcn_r", "L": "calcn_l"}``.
     rotation : (3, 3), lab to the output ground frame.
+    up : the lab's vertical (a signed lab axis, `kinematics.gait.lab_frame.LabFrame.up`); the centre of
+        pressure is solved on the horizontal plane of the plates, so a lab that is not Z up is first turned Z up.
 
     Returns
     -------
@@ -283,6 +314,9 @@ def loads_from_plates(plates, contacts, bodies=None, rotation=LAB_TO_OPENSIM) ->
     """
     bodies = bodies or {"R": "calcn_r", "L": "calcn_l"}
     R = np.asarray(rotation, float)
+    Q = z_up_from(up)
+    if not np.array_equal(Q, np.eye(3)):
+        plates, R = plates.rotated(Q), R @ Q.T
     n = plates.n_frames
     notes = []
     acc = {}

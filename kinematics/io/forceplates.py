@@ -63,7 +63,7 @@ OpenSim ground-reaction files and the inverse dynamics read `ForcePlates`.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -189,6 +189,16 @@ class ForcePlates:
     @property
     def n_frames(self) -> int:
         return self.time.shape[0]
+
+    def rotated(self, R) -> "ForcePlates":
+        """The plates in another frame with the same origin, ``x' = R x`` (R a proper rotation, 3x3): corners,
+        centre, plate axes, normal, force, moment, centre of pressure and free moment."""
+        R = np.asarray(R, float)
+        turn = lambda x: np.asarray(x, float) @ R.T  # noqa: E731
+        plates = tuple(replace(p, corners=turn(p.corners), centre=turn(p.centre), rotation=R @ p.rotation,
+                               normal=turn(p.normal), force=turn(p.force), moment=turn(p.moment), cop=turn(p.cop),
+                               free_moment=turn(p.free_moment)) for p in self.plates)
+        return replace(self, plates=plates)
 
 
 # --------------------------------------------------------------------------- helpers

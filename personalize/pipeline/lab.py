@@ -18,8 +18,6 @@ itself.
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from kinematics.gait.lab_frame import LabFrame, detect_lab
@@ -68,15 +66,8 @@ def to_internal(trial: MarkerTrial, lab: LabFrame) -> MarkerTrial:
 
 
 def plates_to_internal(plates, lab: LabFrame):
-    """`kinematics.io.forceplates.ForcePlates` of a lab trial in the internal frame (corners, centre,
-    plate axes, normal, force, moment, centre of pressure, free moment); the same object for the identity."""
+    """`kinematics.io.forceplates.ForcePlates` of a lab trial in the internal frame (`ForcePlates.rotated`:
+    corners, centre, plate axes, normal, force, moment, centre of pressure, free moment); the same object for
+    the identity."""
     R = lab.internal_from_lab
-    if is_identity(R):
-        return plates
-    out = []
-    for p in plates:
-        out.append(replace(p, corners=rotate_points(R, p.corners), centre=rotate_points(R, p.centre),
-                           rotation=R @ p.rotation, normal=rotate_points(R, p.normal),
-                           force=rotate_points(R, p.force), moment=rotate_points(R, p.moment),
-                           cop=rotate_points(R, p.cop), free_moment=rotate_points(R, p.free_moment)))
-    return replace(plates, plates=tuple(out))
+    return plates if is_identity(R) else plates.rotated(R)
