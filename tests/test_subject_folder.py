@@ -272,3 +272,21 @@ def test_ground_reactions_of_a_y_up_lab(shared_data):
     np.testing.assert_array_equal(lab_to_ground(opensim, (0.0, 1.0, 0.0)), np.eye(3))
     np.testing.assert_array_equal(lab_to_ground(internal), np.eye(3))
     np.testing.assert_array_equal(lab_to_ground(internal, (0.0, 1.0, 0.0)), LAB_TO_OPENSIM.T)
+
+
+def test_internal_frame_of_the_shared_labs(shared_data):
+    """opensim_gait2392 (Y up, facing +X): internal = lab turned Z up, exactly; mocap_pig (Z up, the static facing +X,
+    the movement trial walking -X): the identity; the pig's progression agrees with `walking_direction` (0.4 deg)."""
+    from kinematics.gait.gait_cycles import walking_direction
+    from kinematics.io.trials import read_trial
+
+    g = shared_data / "opensim_gait2392"
+    lab = detect_lab(read_trial(g / "subject01_static.trc"), [read_trial(g / "subject01_walk1.trc")])
+    np.testing.assert_array_equal(lab.internal_from_lab, [[1, 0, 0], [0, 0, -1], [0, 1, 0]])
+    assert lab.describe().endswith("static facing +X")
+    p = shared_data / "mocap_pig"
+    walk = read_trial(p / "Movement_trial.c3d")
+    lab = detect_lab(read_trial(p / "Static_trial.c3d"), [walk])
+    assert np.array_equal(lab.internal_from_lab, np.eye(3)) and lab.describe().startswith("Z up, walking -X")
+    wd = walking_direction(walk, up=lab.up)
+    assert np.degrees(np.arccos(wd @ lab.forward)) < 1.0
