@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO))
 
 
 def standing_translation(subject_dir: Path, out: Path) -> dict:
-    from kinematics.io.c3d import read_c3d
+    from kinematics.io.storage import read_trc
     from kinematics.mechanisms.correlative_fit import fit_law
     from kinematics.algorithms.ik import solve_ik
     from kinematics.io.opensim_io import load_osim
@@ -46,7 +46,9 @@ def standing_translation(subject_dir: Path, out: Path) -> dict:
         run_subject(subject_dir, out)
     m = load_osim(out / "model.osim").with_couplings(None)
     q_st = json.loads((out / "model.json").read_text())["standing_q"]
-    trials = [read_c3d(t) for t in sorted(subject_dir.glob("gait_*.c3d")) + sorted(subject_dir.glob("crouch_*.c3d"))]
+    # the run's TRC copies of the trials are in the model's ground (the C3Ds are in the lab)
+    kin = out / "kinematics"
+    trials = [read_trc(t) for t in sorted(kin.glob("gait_*[0-9].trc")) + sorted(kin.glob("crouch_*[0-9].trc"))]
     res = [solve_ik(m, tr) for tr in trials]
     rows = {}
     for s in ("r", "l"):

@@ -192,7 +192,8 @@ def trial_inverse_kinematics(model_path: str | os.PathLike, trial_path: str | os
                         f"(times {_times(res.time, ~ok)})")
     und = ok & ~res.determined
     if und.any():
-        warnings.append(f"{int(und.sum())} frame(s) have too few markers to determine every coordinate "
+        names = f" ({', '.join(res.undetermined_coordinates)})" if res.undetermined_coordinates else ""
+        warnings.append(f"{int(und.sum())} frame(s) have too few markers to determine every coordinate{names} "
                         f"(times {_times(res.time, und)}); their undetermined coordinates keep the previous "
                         "frame's value")
     rot = tuple(c.name for c in model.coordinates if c.kind == "rotational")
