@@ -54,7 +54,7 @@ from lowerlimb.geometry import DEFAULT_MARKER_RADIUS, kabsch, skew
 
 __all__ = [
     "Registration", "register_landmarks", "static_marker_positions", "express_in_frame", "SKIN_THICKNESS",
-    "skin_prior", "GATE_P", "gate_statistic", "MARKER_PLACEMENT_SD", "SURFACE_NORMAL_SD_DEG",
+    "skin_prior", "GATE_P", "gate_statistic", "MARKER_PLACEMENT_SD", "SURFACE_NORMAL_SD_DEG", "PALPATION_SD",
 ]
 
 #: soft-tissue thickness (m) and sd of a site absent from the per-site table `kinematics.gait.soft_tissue`
@@ -70,6 +70,11 @@ MARKER_PLACEMENT_SD = 0.003
 GATE_P = 1e-6
 #: angular sd (deg) of a normal taken from the bone surface
 SURFACE_NORMAL_SD_DEG = 10.0
+#: tangential sd (m) of a palpated bony-landmark marker whose soft tissue is estimated (`register_landmarks`
+#: with a tissue prior): the lower end of the inter-examiner dispersion of Della Croce, Cappozzo & Kerrigan 1999
+#: (Med Biol Eng Comput 37:155; pelvis and lower-limb landmarks, rms 6-21 mm).  The measured-tissue path keeps
+#: `MARKER_PLACEMENT_SD` alone: its scales were calibrated on phantoms whose markers sit exactly.
+PALPATION_SD = 0.006
 
 def _tangent_sd_deg(cov: np.ndarray) -> float:
     """1-sd angle (deg) of a unit vector from its (rank-2) 3x3 covariance: sqrt(trace / 2)."""
@@ -391,7 +396,7 @@ class _Tissue:
 
     Point k sits at q_k(u) = p_k + (f_k + e^u μ_k) n_k: f_k the fixed part (marker radius, tissue not
     estimated), μ_k the prior tissue scaled (0: not scaled); its variance along n_k is s_k² + (e^u μ_k σ_s)²
-    and across n_k (d_k(u) σ_n,k)²; ln k ~ N(u₀, σ_u²).
+    and across n_k (d_k(u) σ_n,k)² + σ_p² (σ_p = `PALPATION_SD` where μ_k > 0); ln k ~ N(u₀, σ_u²).
     """
 
     P: np.ndarray
@@ -417,8 +422,8 @@ class _Tissue:
         d = self.fixed + k * self.mu
         sd2 = self.sd_fixed ** 2 + (k * self.mu * self.site_log_sd) ** 2
         nn = np.einsum("ki,kj->kij", self.N, self.N)
-        return self.C0 + sd2[:, None, None] * nn + (d * self.normal_sd)[:, None, None] ** 2 * (np.eye(3) - nn) \
-            + 1e-12 * np.eye(3)
+        across = (d * self.normal_sd) ** 2 + np.where(self.mu > 0, PALPATION_SD ** 2, 0.0)
+        return self.C0 + sd2[:, None, None] * nn + across[:, None, None] * (np.eye(3) - nn) + 1e-12 * np.eye(3)
 
 
 def _linearise_tissue(tis: _Tissue, M, Cm, R, t, u, c):
@@ -481,7 +486,8 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
         m_k = R (p_k + (f_k + k μ_k) n_k) + t + ε_k,   f_k = offset_k - μ_k,
 
     and (ω, δ, ln k) minimise χ² + ((ln k - ln k₀)/σ_k)², the sd of t_k along n_k being k μ_k σ_site
-    (the site's own departure from the scaled table) instead of ``offset_sd``.  The inter-marker
+    (the site's own departure from the scaled table) instead of ``offset_sd``, and such a marker's
+    palpation `PALPATION_SD` across n_k added to its noise.  The inter-marker
     distances on the skin against those on the bone (ASIS to PSIS depth) identify k.  The 6x6 ``cov``
     is the pose block of the 7x7 inverse information (k's uncertainty included); ``tissue_scale``,
     ``tissue_scale_log_sd`` and ``tissue`` (name -> (t_k, sd) m) report the estimate.
