@@ -4,9 +4,11 @@ Stages, and the values that pass between them (every estimate in SI units
 with its covariance, `lowerlimb.estimates.Gaussian`):
 
 1. **inputs** (`inputs.find_inputs` -> `SubjectInputs`): ``labels.nii.gz`` (+
-   ``label_map.json``) or ``bones/``, ``static.c3d``, ``subject.json`` and every
-   other ``*.c3d``; trials of another subject and labels and markers without a
-   common side are refused (`InputError`);
+   ``label_map.json``) or ``bones/``, the static trial (``static.c3d``/``.trc``,
+   any case), ``subject.json`` and every other ``*.c3d``/``*.trc``; the lab read
+   from the trials and every trial expressed in the internal frame (X the static
+   pose's facing, Y left, Z up; `lab`); trials of another subject, an ambiguous
+   lab and labels and markers without a common side are refused (`InputError`);
 2. **bones** (`personalize.bone_set.analyse_bones` -> `BoneSet`): bone surfaces,
    landmarks (`personalize.landmarks.LandmarkSet`) and joint frames
    (`personalize.frames.Joint`) in the scanner frame, the same stage as
