@@ -301,9 +301,9 @@ def measure_from_bones(values: dict, points: dict, *, source=None) -> tuple[Subj
             out[key], how = measured[other]
             how = f"{how}, the {other.split('_')[0]} side's (no {side} bones)"
         else:
-            names = [n.format(S=S) for n in rules[what][0] for S in "RL"]
-            raise InputError(source, f"{key} is neither given nor measurable: the bones lack "
-                                     f"{' / '.join(sorted(set(names) - set(points)))}")
+            names = {n.format(S=S) for n in rules[what][0] for S in "RL"}
+            lack = sorted(n for n in names if dist(n, n) is None)
+            raise InputError(source, f"{key} is neither given nor measurable: the bones lack {' / '.join(lack)}")
         sources[key] = f"{how}: {out[key] * 1e3:.1f} mm"
     return subject_from_values(out, source or "subject file"), sources
 
