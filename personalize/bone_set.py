@@ -50,7 +50,7 @@ class BoneSet:
         doc["missing_bones"] = list(self.landmarks.missing)
         doc["input_notes"] = list(getattr(self.surfaces, "notes", []))
         doc["inputs"] = {b: {"source": s.source, "repairs": list(s.report.get("repairs", [])),
-                             **({"whole_foot": s.report["whole_foot"]} if "whole_foot" in s.report else {})}
+                             **{k: s.report[k] for k in ("whole_foot", "fibula_split") if k in s.report}}
                          for b, s in self.surfaces.items()}
         return doc
 

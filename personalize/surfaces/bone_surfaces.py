@@ -22,7 +22,7 @@ from personalize.io import LabelVolume, is_label_volume_path, read_label_volume,
 from personalize.io.units import PLAUSIBLE_EXTENT_M
 
 from .extraction import decimate, decimation_message, extract_surface
-from .masks import clean_mask
+from .masks import clean_mask, split_fibula
 from .sampling import PointCloud, point_cloud
 
 __all__ = ["BoneSurface", "BoneSurfaces", "surfaces_from_labels", "load_bones"]
@@ -198,7 +198,19 @@ def surfaces_from_labels(volume: LabelVolume, *, bones: list[str] | None = None,
         start = np.array([s.start for s in sl], float)
         aff = volume.affine_m.copy()
         aff[:3, 3] = aff[:3, :3] @ start + aff[:3, 3]
-        mesh = extract_surface(mask, aff, sigma=sigma, smoothing_iterations=smoothing_iterations)
+        parts = None
+        if bone.startswith("tibia_") and f"fibula_{bone[-1]}" not in lmap:
+            # a fibula labelled with its tibia touches it at both tibiofibular joints: surfaced as a second
+            # component, so the landmark detectors find it (`landmarks.tibia.detect_tibia`)
+            parts = split_fibula(mask, volume.spacing_m)
+        if parts is None:
+            mesh = extract_surface(mask, aff, sigma=sigma, smoothing_iterations=smoothing_iterations)
+        else:
+            tib, fib, info = parts
+            mesh = trimesh.util.concatenate([extract_surface(m, aff, sigma=sigma, smoothing_iterations=smoothing_iterations)
+                                             for m in (tib, fib)])
+            rep["fibula_split"] = {**info, "note": f"fibula_{bone[-1]} parted from the {bone} label at the tibiofibular "
+                                   f"joints (erosion by {info['erosion_m'] * 1e3:.1f} mm) and surfaced as its second component"}
         rep.update({"label": int(label), "voxels": int(mask.sum()),
                     "voxel_size_m": [float(x) for x in volume.spacing_m], "units_detected": volume.unit,
                     "frame": volume.frame, "label_map": volume.label_map_source, "unmapped_labels": unmapped,
