@@ -27,11 +27,17 @@ from .registration import (MARKER_PLACEMENT_SD, SURFACE_NORMAL_SD_DEG, Registrat
 if TYPE_CHECKING:
     from personalize.landmarks.common import BoneLandmarks, LandmarkSet
 
-__all__ = ["SEGMENT_MARKERS", "SEGMENT_BONES", "GUESSED_NORMAL_SD_DEG", "Correspondences", "marker_correspondences",
+__all__ = ["SEGMENT_MARKERS", "SEGMENT_BONES", "GUESSED_NORMAL_SD_DEG", "AXIS_LANDMARK_DISTANCE", "Correspondences",
+           "marker_correspondences",
            "surface_normal", "SegmentRegistrations", "register_segments"]
 
 #: angular sd (deg) of an outward normal guessed from internal landmarks (no surface given)
 GUESSED_NORMAL_SD_DEG = 30.0
+#: m, largest distance of a landmark from a joint axis for it to count as lying on that axis (and be projected on
+#: it): the epicondyles and malleoli of the five real bone sets of ../shared/data/bones lie 1-29 mm from their
+#: knee / ankle axis (MC22's left ankle, whose plafond is not found, the 29), of the analytic phantom 9-31 mm; the
+#: nearest landmark off the axis (the tibial tuberosity, fibular head, greater trochanter) 300-424 mm
+AXIS_LANDMARK_DISTANCE = 0.050
 #: marker names (without side letter) per registration segment
 SEGMENT_MARKERS: dict[str, tuple[str, ...]] = {
     "pelvis": ("RASI", "LASI", "RPSI", "LPSI", "SYMP"),
@@ -150,9 +156,12 @@ def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marke
     `surfaces` (nearest vertex; a bone of the segment when its own is absent),
     else guessed from the nearest internal landmark of the segment (e.g.
     condyle centre -> epicondyle) with `GUESSED_NORMAL_SD_DEG`.  With ``axis =
-    (point c, direction u)`` p is first projected on that joint axis and n = ±u
-    away from c: Plug-in-Gait places the knee and ankle markers on the flexion /
-    transmalleolar axis at the epicondyle / malleolus, not on the prominence itself.
+    (point c, direction u)`` a landmark that lies on that joint axis (within
+    `AXIS_LANDMARK_DISTANCE` of it: the epicondyles, the malleoli) is first
+    projected on it and n = ±u away from c: Plug-in-Gait places the knee and
+    ankle markers on the flexion / transmalleolar axis at the epicondyle /
+    malleolus, not on the prominence itself.  Landmarks away from the axis (the
+    greater trochanter, tibial tuberosity, fibular head) are used as they are.
 
     Parameters
     ----------
@@ -185,8 +194,10 @@ def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marke
         if axis is not None:
             c0 = np.asarray(axis[0], float)
             u = np.asarray(axis[1], float) / np.linalg.norm(axis[1])
-            p = c0 + np.dot(p - c0, u) * u
-            nrm = u if np.dot(p - c0, u) > 0 else -u
+            along = c0 + np.dot(p - c0, u) * u
+            if np.linalg.norm(p - along) <= AXIS_LANDMARK_DISTANCE:
+                p = along
+                nrm = u if np.dot(p - c0, u) > 0 else -u
         out.add_marker(n, Gaussian(p, lm.cov), static[n], nrm, skin_thickness=skin_thickness, skin_sd=skin_sd,
                        marker_radius=marker_radius, normal_sd_deg=nsd)
     return out
