@@ -58,6 +58,7 @@ class JointEstimates:
     hip_joint : `Fused` of both hip centres (6-vector r, l; sources "mri", "motion_r", "motion_l")
     skin : marker -> `personalize.skin.SkinThickness` under the pelvic markers
     mri_hip_scale : the MRI hip covariance scale in force
+    mri_dropped : segment -> why its MRI source was dropped (registration failed its gate; `joints.gate_segment`)
     notes, sources : what the run says about itself (summary.json)
     """
 
@@ -71,6 +72,7 @@ class JointEstimates:
     hip_joint: Fused | None = None
     skin: dict = field(default_factory=dict)
     mri_hip_scale: float = 1.0
+    mri_dropped: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

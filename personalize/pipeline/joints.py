@@ -8,6 +8,7 @@ plus the fused proximal joint centre.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -16,18 +17,20 @@ from kinematics.gait.pig import pelvis_frame
 from kinematics.gait.soft_tissue import tissue_scale_prior
 from lowerlimb.errors import InputError
 
+from ..fusion import fuse_axis
 from ..marker_registration import register_segments
 from ..registration import GATE_P, gate_statistic, static_marker_positions
 from ..skin import estimated_skin
 from .foot import estimate_ankle, estimate_foot_axes
 from .hip import MRI_HIP_COV_SCALE, MRI_HIP_COV_SCALE_MEASURED, estimate_hips
 from .inputs import PELVIS_MARKERS, SubjectInputs, label_volume
-from .joint_estimates import JointContext, JointEstimates
+from .joint_estimates import AxisEstimates, JointContext, JointEstimates
 from .knee import estimate_knee
 from .markers import marker_view
 from .motion import pelvis_rear, pig_static
 
-__all__ = ["estimate_joints", "pelvis_skin", "gate_registrations"]
+__all__ = ["estimate_joints", "pelvis_skin", "gate_registrations", "gate_segment", "passes_gate", "motion_only",
+           "SEGMENT_JOINTS"]
 
 
 def pelvis_skin(inputs: SubjectInputs, surfaces: dict, landmarks, volume=None) -> dict:
@@ -100,17 +103,28 @@ def estimate_joints(inputs: SubjectInputs, surfaces: dict, landmarks, joints: di
                        view.trials[inputs.functional] if inputs.functional else None, all_measured, say, view)
     estimate_hips(ctx, regs["pelvis"], est.pelvis[1], est)
     for s in inputs.sides:
+        # each segment is gated before the next one is registered on its fused distal joint centre
         hip = est.centres[s]["hip"].fused
-        reg_f, knee, knee_axis, k_scale = estimate_knee(ctx, s, hip, est.mri_hip_scale, est)
-        reg_t, ankle, ankle_axis, a_scale = estimate_ankle(ctx, s, knee.fused, k_scale, est)
-        est.registrations[f"femur_{s}"], est.registrations[f"tibia_{s}"] = reg_f, reg_t
-        for r in (reg_f, reg_t):
+        est.registrations[f"femur_{s}"], knee, knee_axis, k_scale = estimate_knee(ctx, s, hip, est.mri_hip_scale, est)
+        est.centres[s]["knee"], est.axes[s] = knee, {"knee": knee_axis}
+        if not gate_segment(est, f"femur_{s}", say):
+            k_scale = 1.0          # the knee anchor is now the motion estimate, not a calibrated MRI one
+        reg_t, ankle, ankle_axis, a_scale = estimate_ankle(ctx, s, est.centres[s]["knee"].fused, k_scale, est)
+        est.registrations[f"tibia_{s}"] = reg_t
+        est.centres[s]["ankle"], est.axes[s]["ankle"] = ankle, ankle_axis
+        if not gate_segment(est, f"tibia_{s}", say):
+            a_scale = 1.0
+        for r in (est.registrations[f"femur_{s}"], reg_t):
             if any(n.startswith(("pig_", "motion_")) for n in r.names):
                 est.notes.append(f"{r.segment}: fewer than 3 landmark/marker correspondences; registered with the Plug-in-Gait "
                                  "joint centre (MRI and motion estimates of this segment are correlated)")
-        est.registrations[f"calcn_{s}"], est.lines[s] = estimate_foot_axes(ctx, s, ankle.fused, a_scale, reg_t, est)
-        est.centres[s].update(knee=knee, ankle=ankle)
-        est.axes[s] = {"knee": knee_axis, "ankle": ankle_axis}
+        ankle_fused = est.centres[s]["ankle"].fused
+        reg_c, est.lines[s] = estimate_foot_axes(ctx, s, ankle_fused, a_scale, reg_t, est)
+        est.registrations[f"calcn_{s}"] = reg_c
+        if not gate_segment(est, f"calcn_{s}", say) or (reg_c is reg_t and f"tibia_{s}" in est.mri_dropped):
+            # the MRI subtalar and mtp axes came through a failed registration: the default axes instead
+            foot_joints = {k: v for k, v in ctx.joints.items() if k not in (f"subtalar_{s}", f"mtp_{s}")}
+            _, est.lines[s] = estimate_foot_axes(replace(ctx, joints=foot_joints), s, ankle_fused, a_scale, reg_t, est)
     note_inconsistencies(est)
     return est
 
@@ -129,6 +143,68 @@ def sacral_landmark(landmarks, static: dict) -> dict:
     back = mid_psis - 0.5 * (p["RASI"] + p["LASI"])
     back -= (back @ lr) / (lr @ lr) * lr
     return {"SACR": (mid_psis, back / np.linalg.norm(back))}
+
+
+#: joints whose MRI estimates a segment's registration carries into the lab (centre and axis; the foot's lines)
+SEGMENT_JOINTS = {"femur": ("knee",), "tibia": ("ankle",), "calcn": ("subtalar", "mtp")}
+
+
+def passes_gate(reg) -> tuple[bool, str]:
+    """Whether a registration passes its chi-square gate (`registration.gate_statistic` p >= `GATE_P`), and why not."""
+    chi2, dof, p = gate_statistic(reg)
+    if p >= GATE_P:
+        return True, ""
+    return False, (f"{reg.segment} registration of the MRI bones to the static markers fails its chi-square gate "
+                   f"(chi2 = {chi2:.1f} on {dof} dof, p = {p:.1g} < {GATE_P:g}; rms {reg.rms * 1e3:.1f} mm"
+                   + (f"; outliers {', '.join(reg.rejected)}" if reg.rejected else "") + ")")
+
+
+def motion_only(e):
+    """`CentreEstimates` / `AxisEstimates` `e` with the fused estimate replaced by the motion one (MRI weight 0).
+
+    The sources' agreement (chi2, p) of the original fusion is kept: it says how far the dropped MRI estimate was.
+    """
+    f = e.fused
+    if isinstance(e, AxisEstimates):
+        alone = fuse_axis([e.motion.direction], [e.motion.sd_deg], ("motion",))
+        sign = 1.0 if float(alone.direction @ f.direction) >= 0 else -1.0
+        return replace(e, fused=replace(f, direction=sign * alone.direction, sd_deg=alone.sd_deg, cov=alone.cov,
+                                        shares=np.array([0.0, 1.0])))
+    d = f.mean.size
+    return replace(e, fused=replace(f, mean=np.asarray(e.motion.mean, float).copy(),
+                                    cov=np.asarray(e.motion.cov, float).copy(),
+                                    weights=np.stack([np.zeros((d, d)), np.eye(d)]), shares=np.array([0.0, 1.0])))
+
+
+def gate_segment(est: JointEstimates, segment: str, say: Callable[[str], None] | None = None) -> bool:
+    """Gate one leg segment's registration; on failure drop its MRI source (fused = motion for the joints it
+    carries, `SEGMENT_JOINTS`), say so on `say` and in ``est.notes``.  Returns whether it passed.
+
+    The foot's subtalar and mtp axes have no motion estimate: the caller replaces them by the default axes.
+    Idempotent: a segment already dropped (``est.mri_dropped``) is not dropped twice.
+    """
+    if segment in est.mri_dropped:
+        return False
+    ok, what = passes_gate(est.registrations[segment])
+    if ok:
+        return True
+    kind, s = segment.rsplit("_", 1)
+    carried = SEGMENT_JOINTS.get(kind, ())
+    for jn in carried:
+        if jn in est.centres.get(s, {}):
+            est.centres[s][jn] = motion_only(est.centres[s][jn])
+        if jn in est.axes.get(s, {}):
+            est.axes[s][jn] = motion_only(est.axes[s][jn])
+        if kind != "calcn":
+            est.sources[f"{jn}_{s}"] = f"motion only: the MRI source was dropped ({segment} registration failed its gate)"
+    msg = (f"{what}: its MRI source is dropped, the {' and '.join(f'{j}_{s}' for j in carried)} "
+           + ("axes are the defaults" if kind == "calcn" else "estimates are the motion ones alone")
+           + " (wrong bones, a misplaced or mislabelled marker?)")
+    est.mri_dropped[segment] = msg
+    est.notes.append(f"warning: {msg}")
+    if say is not None:
+        say(f"warning: {msg}")
+    return False
 
 
 def note_inconsistencies(est: JointEstimates, p_min: float = 0.01) -> None:
@@ -158,16 +234,17 @@ def note_inconsistencies(est: JointEstimates, p_min: float = 0.01) -> None:
 
 
 
-def gate_registrations(inputs: SubjectInputs, est: JointEstimates) -> None:
-    """Refuse the subject when the pelvis registration says the MRI bones are another person's; note other segments."""
-    for name, reg in est.registrations.items():
-        chi2, dof, p = gate_statistic(reg)
-        if p >= GATE_P:
-            continue
-        what = (f"{name} registration of the MRI bones to the static markers fails its chi-square gate "
-                f"(chi2 = {chi2:.1f} on {dof} dof, p = {p:.1g} < {GATE_P:g}; rms {reg.rms * 1e3:.1f} mm"
-                + (f"; outliers {', '.join(reg.rejected)}" if reg.rejected else "") + ")")
-        if name == "pelvis":
-            raise InputError(inputs.bones, what + ": the bones and the markers are not of the same person?")
-        est.notes.append(f"low confidence: {what}")
+def gate_registrations(inputs: SubjectInputs, est: JointEstimates, say: Callable[[str], None] | None = None) -> None:
+    """Refuse the subject when the pelvis registration fails its chi-square gate (the MRI bones are another
+    person's); drop the MRI source of any other segment failing it (`gate_segment`) not already dropped.
 
+    Raises
+    ------
+    InputError : naming the bones, the pelvis' chi-square and p-value
+    """
+    ok, what = passes_gate(est.registrations["pelvis"])
+    if not ok:
+        raise InputError(inputs.bones, what + ": the bones and the markers are not of the same person?")
+    for name in est.registrations:
+        if name != "pelvis":
+            gate_segment(est, name, say)

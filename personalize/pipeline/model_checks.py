@@ -21,7 +21,14 @@ Two tests on the built model in the static lab frame (the bones moved there by t
   marker was measured in the MRI (`personalize.skin.SkinThickness` t ± s), the limit is at least
   t + `SKIN_SD_FACTOR` s + the marker radius: a thick but measured tissue is not a failure.
 
-A registration that diverged puts joints and markers metres away; either test then fails, and the run is
+and a third against the MRI bones themselves:
+
+* each thigh and shank of the model (hip-knee, knee-ankle centre distance) is within
+  `SEGMENT_LENGTH_TOLERANCE` of the same distance between the MRI bones' joint centres (scanner frame,
+  `bone_segment_lengths`), |L_model / L_bones - 1| ≤ 5 %: a knee or ankle taken from the markers alone
+  (the segment's MRI source dropped) or pulled off by a wrong marker changes the segment's length.
+
+A registration that diverged puts joints and markers metres away; a test then fails, and the run is
 refused with a one-line `InputError` instead of a model being written.
 """
 from __future__ import annotations
@@ -37,7 +44,8 @@ from lowerlimb.topology import JOINT_BONES
 
 from ..marker_registration import SEGMENT_MARKERS
 
-__all__ = ["JOINT_BOX_MARGIN", "MARKER_SURFACE_MARGIN", "OFF_BONE_MARKER_SURFACE_MARGIN", "SKIN_SD_FACTOR", "ModelCheck", "model_checks", "check_model"]
+__all__ = ["JOINT_BOX_MARGIN", "MARKER_SURFACE_MARGIN", "OFF_BONE_MARKER_SURFACE_MARGIN", "SKIN_SD_FACTOR",
+           "SEGMENT_LENGTH_TOLERANCE", "SEGMENTS", "ModelCheck", "model_checks", "check_model", "bone_segment_lengths"]
 
 #: m, how far a joint centre may lie outside its bones' bounding boxes: issue #17 ([R1]), "What to build"
 #: point 3 ("every joint inside its bones' bounding boxes plus 20 mm").  The demo phantom's joints are inside
@@ -56,6 +64,12 @@ SKIN_SD_FACTOR = 3.0
 #: refuses any registration that diverged by more than a bone's width.
 OFF_BONE_MARKER_SURFACE_MARGIN = 0.150
 
+#: relative difference allowed between a model segment's length and the MRI bones' (issue #17 ([R1]), "What to
+#: build" point 3: "segment lengths within 5 % of the bones'"); 5 % of a 400 mm thigh is 20 mm, the joint-box margin
+SEGMENT_LENGTH_TOLERANCE = 0.05
+#: model segment -> (proximal, distal) joint whose centres' distance is its length
+SEGMENTS = {"thigh": ("hip", "knee"), "shank": ("knee", "ankle")}
+
 #: a tibia's box includes its fibula (one body, and the lateral malleolus is the fibula's)
 _BONE_PARTS = {"tibia": ("tibia", "fibula")}
 #: marker names on bony landmarks (sided ones with their side letter)
@@ -67,7 +81,7 @@ _BONY_MARKERS = set(SEGMENT_MARKERS["pelvis"]) | {s + m for k, v in SEGMENT_MARK
 class ModelCheck:
     """One test: `item` (a joint and bone, or a marker and body), its distance and limit (m)."""
 
-    kind: str          # "joint" or "marker"
+    kind: str          # "joint", "marker" or "length" (distance and limit then relative, not m)
     item: str
     distance: float
     limit: float
@@ -86,18 +100,34 @@ def _box_distance(point: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
     return float(np.linalg.norm(np.maximum(np.maximum(lo - point, 0.0), point - hi)))
 
 
-def model_checks(pm, meshes_lab: dict, skin: dict | None = None) -> list[ModelCheck]:
-    """Every joint-in-box and marker-on-surface test of a built model.
+def bone_segment_lengths(joints: dict, sides) -> dict:
+    """side -> {segment: m}: the distance between the MRI bones' joint centres of each `SEGMENTS` entry.
+
+    `joints` : joint name -> `personalize.frames.Joint` (scanner frame; ``centre.mean`` m).  A rigid map
+    preserves the distance, so it compares directly with the model's lab-frame segment."""
+    out: dict = {}
+    for s in sides:
+        for seg, (a, b) in SEGMENTS.items():
+            ja, jb = joints.get(f"{a}_{s}"), joints.get(f"{b}_{s}")
+            if ja is not None and jb is not None:
+                out.setdefault(s, {})[seg] = float(np.linalg.norm(np.asarray(ja.centre.mean, float)
+                                                                  - np.asarray(jb.centre.mean, float)))
+    return out
+
+
+def model_checks(pm, meshes_lab: dict, skin: dict | None = None, bone_lengths: dict | None = None) -> list[ModelCheck]:
+    """Every joint-in-box, marker-on-surface and segment-length test of a built model.
 
     Parameters
     ----------
     pm : `personalize.model_builder.PersonalModel` (joint centres in `pm.parameters.sides`, static lab, m)
     meshes_lab : bone -> (trimesh.Trimesh, body), the bones in the static lab frame (`model.bone_meshes_lab`)
     skin : marker -> `personalize.skin.SkinThickness` measured in the MRI (`joints.pelvis_skin`), or None
+    bone_lengths : side -> {segment: m} of the MRI bones (`bone_segment_lengths`), or None (no length test)
 
     Returns
     -------
-    list of `ModelCheck`, joints first
+    list of `ModelCheck`, joints first, then segment lengths, then markers
     """
     out: list[ModelCheck] = []
     for s, sp in sorted(pm.parameters.sides.items()):
@@ -117,6 +147,16 @@ def model_checks(pm, meshes_lab: dict, skin: dict | None = None) -> list[ModelCh
             near = min(d, key=d.get)
             out.append(ModelCheck("joint", f"{joint}_{s} centre outside the {' and '.join(boxes)} bounding boxes "
                                   f"(nearest {near})", d[near], JOINT_BOX_MARGIN))
+    for s, lengths in sorted((bone_lengths or {}).items()):
+        sp = pm.parameters.sides.get(s)
+        for seg, ref in lengths.items():
+            if sp is None or not ref > 0:
+                continue
+            a, b = SEGMENTS[seg]
+            L = float(np.linalg.norm(np.asarray(getattr(sp, a), float) - np.asarray(getattr(sp, b), float)))
+            rel = abs(L / ref - 1.0) if np.isfinite(L) else float("inf")
+            out.append(ModelCheck("length", f"{seg}_{s} length {L * 1e3:.0f} mm ({a}-{b}) differs from the MRI bones' "
+                                  f"{ref * 1e3:.0f} mm by", rel, SEGMENT_LENGTH_TOLERANCE))
     by_body: dict[str, list] = {}
     for mesh, body in meshes_lab.values():
         by_body.setdefault(body, []).append(mesh)
@@ -140,19 +180,25 @@ def model_checks(pm, meshes_lab: dict, skin: dict | None = None) -> list[ModelCh
     return out
 
 
-def check_model(pm, meshes_lab: dict, source, skin: dict | None = None) -> list[ModelCheck]:
-    """`model_checks`, refusing the model on the first failed test (the worst one).
+def check_model(pm, meshes_lab: dict, source, skin: dict | None = None,
+                bone_lengths: dict | None = None) -> list[ModelCheck]:
+    """`model_checks`, refusing the model on the first failed test (the worst one: a joint or marker farthest
+    out, else the segment length farthest off).
 
     Raises
     ------
-    InputError : naming `source` (the subject folder), the joint or marker and its distance in mm
+    InputError : naming `source` (the subject folder), the joint, marker or segment and its distance (mm, %)
     """
-    checks = model_checks(pm, meshes_lab, skin)
+    checks = model_checks(pm, meshes_lab, skin, bone_lengths)
     failed = [c for c in checks if not c.passed]
     if failed:
-        worst = max(failed, key=lambda c: c.distance)
+        far = [c for c in failed if c.kind != "length"]
+        worst = max(far or failed, key=lambda c: c.distance)
         more = f" (and {len(failed) - 1} more failed checks)" if len(failed) > 1 else ""
-        raise InputError(source, f"model refused: {worst.item} is {worst.distance * 1e3:.0f} mm "
-                                 f"(limit {worst.limit * 1e3:.0f} mm){more}; a registration has likely diverged "
+        if worst.kind == "length":
+            what = f"{worst.item} {worst.distance * 100:.1f} % (limit {worst.limit * 100:.0f} %)"
+        else:
+            what = f"{worst.item} is {worst.distance * 1e3:.0f} mm (limit {worst.limit * 1e3:.0f} mm)"
+        raise InputError(source, f"model refused: {what}{more}; a registration has likely diverged "
                                  f"or a marker is on the wrong segment")
     return checks

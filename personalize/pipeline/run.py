@@ -74,7 +74,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     from ..parameter_fusion import fuse_segment_lengths
     from .marker_assignment import model_markers
     from .model import bone_meshes_lab
-    from .model_checks import check_model
+    from .model_checks import bone_segment_lengths, check_model
     from .trials import chain_blend, solve_trials
 
     say = progress or (lambda m: None)
@@ -89,7 +89,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     # the MRI covariance scales were calibrated on phantoms: without the real-bone model-error term
     joints = {k: j.without_model_error() for k, j in bones.joints.items()}
     est = estimate_joints(inputs, bones.surfaces, bones.landmarks, joints, say, bones.dropped, skin=skin)
-    gate_registrations(inputs, est)
+    gate_registrations(inputs, est, say)
     meshes_lab = bone_meshes_lab(bones.surfaces, est, inputs.sides)
     markers = model_markers(inputs, meshes_lab)
     say("building the model")
@@ -110,7 +110,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
                              lab=inputs.lab.to_json(), measurements=_measurements_json(inputs))
     summary.markers = markers.to_json()
     say("checking the model against the bones")
-    check_model(pm, meshes_lab, inputs.folder, skin)
+    check_model(pm, meshes_lab, inputs.folder, skin, bone_segment_lengths(joints, inputs.sides))
     truth = truth_in_static_lab(inputs)
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)
