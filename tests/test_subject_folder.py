@@ -290,3 +290,32 @@ def test_internal_frame_of_the_shared_labs(shared_data):
     assert np.array_equal(lab.internal_from_lab, np.eye(3)) and lab.describe().startswith("Z up, walking -X")
     wd = walking_direction(walk, up=lab.up)
     assert np.degrees(np.arccos(wd @ lab.forward)) < 1.0
+
+
+def test_loads_from_a_y_up_c3d(shared_data, tmp_path):
+    """mocap_pig's movement trial rewritten in a Y-up lab (markers and plate corners turned; the channels are in the
+    plate's frame): `loads_from_c3d` reads the vertical from the markers, the plates with it, and gives gait2392's
+    ground (Y up) the same ground reactions as from the Z-up file."""
+    from types import SimpleNamespace
+
+    import ezc3d
+
+    from kinematics.gait.inverse_dynamics import loads_from_c3d
+    from kinematics.io.external_loads import LAB_TO_OPENSIM
+
+    src = shared_data / "mocap_pig" / "Movement_trial.c3d"
+    c = ezc3d.c3d(str(src))
+    pts = np.array(c["data"]["points"])
+    pts[:3] = np.einsum("ij,jmf->imf", LAB_TO_OPENSIM, pts[:3])
+    c["data"]["points"] = pts
+    corners = np.array(c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"])
+    c["parameters"]["FORCE_PLATFORM"]["CORNERS"]["value"] = np.einsum("ij,jcp->icp", LAB_TO_OPENSIM, corners)
+    c.write(str(tmp_path / "yup.c3d"))
+    model = SimpleNamespace(gravity=np.array([0.0, -9.80665, 0.0]), name="gait2392", body_names=("calcn_r", "calcn_l"))
+    ref, got = loads_from_c3d(src, model), loads_from_c3d(tmp_path / "yup.c3d", model)
+    assert any(n.startswith("lab: Y up") for n in got.notes) and any(n.startswith("lab: Z up") for n in ref.notes)
+    assert len(ref.loads) == len(got.loads) >= 1 and ref.exclude == got.exclude
+    for a, b in zip(ref.loads, got.loads):
+        assert a.body == b.body
+        for f in ("force", "point", "torque"):
+            np.testing.assert_allclose(getattr(b, f), getattr(a, f), atol=1e-6, err_msg=f)
