@@ -42,7 +42,7 @@ def test_refusal_names_the_static_file_and_the_missing_markers(tmp_path):
         subject_marker_set(tmp_path, _trial(labels, source=str(tmp_path / "static.c3d")))
     msg = str(e.value)
     assert "static.c3d" in msg and "'pig'" in msg and "markers.json" in msg and "\n" not in msg
-    for m in ("RTHI", "RTOE"):                       # the nearest preset's missing markers, by name
+    for m in ("RTHI", "RTOE", "LTHI", "LTOE"):       # the nearest preset's missing markers, by name
         assert m in msg
     # a given set the trial does not fit: the missing markers of that set
     with pytest.raises(InputError, match=r"marker set 'ior'.*missing.*RTRO"):
@@ -233,4 +233,5 @@ def test_real_lab_files_detected(shared_data):
     assert (pig.marker_set.name, pig.sides, pig.found) == ("pig", ("r", "l"), 16)
     # the walk lacks the medial and lateral knee and ankle markers (static-only in that lab): named as missing
     walk = detect_marker_set(read_trc(shared_data / "opensim_gait2392" / "subject01_walk1.trc"))
-    assert not walk.fits and set(walk.missing) == {"R.Knee.Lat", "R.Knee.Med", "R.Ankle.Lat", "R.Ankle.Med"}
+    assert not walk.fits and set(walk.missing) == {f"{S}.{m}" for S in "RL" for m in ("Knee.Lat", "Knee.Med",
+                                                                                       "Ankle.Lat", "Ankle.Med")}

@@ -255,7 +255,7 @@ class SetMatch:
     """How a marker set fits a trial's labels.
 
     marker_set : the set; sides : sides ('r', 'l') with every one of their markers visible
-    missing : labels the set needs but the trial lacks (the pelvis', then the most complete side's)
+    missing : labels the set needs but the trial lacks (the pelvis', then, when no side is complete, each side's)
     found : number of the set's labels the trial shows
     """
 
@@ -280,8 +280,7 @@ def match_marker_set(ms: MarkerSet, trial) -> SetMatch:
     per_side = {s: [k for k, v in need.items() if _side_of(v) == s and k not in seen] for s in ("r", "l")}
     has = {s: any(_side_of(v) == s for v in need.values()) for s in ("r", "l")}
     sides = tuple(s for s in ("r", "l") if has[s] and not per_side[s])
-    best = min((s for s in ("r", "l") if has[s]), key=lambda s: len(per_side[s]), default=None)
-    missing = tuple(pelvis + ([] if best is None or sides else per_side[best]))
+    missing = tuple(pelvis + ([] if sides else [k for s in ("r", "l") if has[s] for k in per_side[s]]))
     return SetMatch(ms, sides, missing, sum(k in seen for k in ms.markers))
 
 
