@@ -49,17 +49,26 @@ def test_virtual_medial_knee_needs_its_marker_and_landmarks():
     assert vm.virtual_medial_knee({"RKNE": Gaussian(kne, np.eye(3) * 1e-6)}, {}, "r", np.array([0, 0, 1.0]), np.eye(3)) is None
 
 
-def test_knee_axis_pairs_carry_the_axis_points_through_the_femur_registration():
+def test_knee_axis_pairs_carry_the_axis_direction_through_the_femur_registration():
     R = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
     t = np.array([0.3, 1.2, 0.05])
-    reg = Registration(R=R, t=t, cov=np.zeros((6, 6)), centre=t, names=(), rejected={}, residuals=np.zeros((0, 3)),
+    Om = np.diag([1e-4, 4e-4, 9e-4])
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = Om
+    reg = Registration(R=R, t=t, cov=cov, centre=t, names=(), rejected={}, residuals=np.zeros((0, 3)),
                        mahalanobis=np.zeros(0), chi2=0.0, dof=0, p_value=1.0)
     c, u = np.array([0.01, 0.02, 0.5]), np.array([0.0, 0.6, 0.8])
-    pairs = vm.knee_axis_pairs(reg, c, u, "r")
+    k = np.array([0.2, 0.1, 0.45])                      # the (fused) lab knee centre the shank is registered to
+    pairs = vm.knee_axis_pairs(reg, c, u, k, "r")
     assert [p[0] for p in pairs] == ["knee_axis_r_a", "knee_axis_r_b"]
-    sd = vm.KNEE_AXIS_HALF_LENGTH * np.sin(np.radians(vm.KNEE_STANDING_ROTATION_SD_DEG))
+    ell = vm.KNEE_AXIS_HALF_LENGTH
+    w = R @ u
     for (name, mri, lab), sign in zip(pairs, (1, -1)):
-        p = c + sign * vm.KNEE_AXIS_HALF_LENGTH * u
-        np.testing.assert_allclose(mri.mean, p, atol=1e-15)
-        np.testing.assert_allclose(lab.mean, R @ p + t, atol=1e-12)
-        np.testing.assert_allclose(lab.cov, sd**2 * np.eye(3), atol=1e-15)
+        np.testing.assert_allclose(mri.mean, c + sign * ell * u, atol=1e-15)
+        np.testing.assert_allclose(lab.mean, k + sign * ell * w, atol=1e-15)
+        # no variance along the axis from the rotation; (ell sin 5 deg)^2 in every direction
+        assert abs(w @ lab.cov @ w - (ell * np.sin(np.radians(vm.KNEE_STANDING_ROTATION_SD_DEG)))**2) < 1e-15
+        e = np.cross(w, [1.0, 0.0, 0.0])
+        e /= np.linalg.norm(e)
+        expected = ell**2 * (np.cross(e, w) @ Om @ np.cross(e, w)) + (ell * np.sin(np.radians(5.0)))**2
+        assert abs(e @ lab.cov @ e - expected) < 1e-15

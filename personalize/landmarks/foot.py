@@ -143,11 +143,17 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     k = extreme_vertex(surface, -X, heel_zone, smooth=0.001)
     res.landmarks[f"{P}HEE"] = Landmark(V[k].copy(), isotropic_cov(0.002))
     dd = unit(X + up)
-    for lab, mk in (("met1", f"{P}D1M"), ("met5", f"{P}D5M")):
+    for lab in ("met1", "met5"):
         f = contacts[lab][1]
         if f is not None:
-            res.landmarks[mk] = Landmark(np.asarray(f.centre) + f.radius * dd, sphere_centre_cov(f))
+            res.landmarks[f"{lab}_dorsal"] = Landmark(np.asarray(f.centre) + f.radius * dd, sphere_centre_cov(f))
             res.landmarks[f"{lab}_head_centre"] = Landmark(np.asarray(f.centre, float), sphere_centre_cov(f))
+    # first / fifth metatarsal head markers: the most medial / lateral point of the forefoot (anterior 30 %), where
+    # they are palpated (IOR foot protocol, Leardini et al. 2007) and where STAPLE puts RD1M / RD5M (ICL_MRI: 90 mm
+    # apart; the lowest points of the medial and lateral halves above were 52 mm apart, the 2nd-4th heads)
+    for mk, direction in ((f"{P}D1M", med), (f"{P}D5M", -med)):
+        k = extreme_vertex(surface, direction, fore, smooth=0.001)
+        res.landmarks[mk] = Landmark(V[k].copy(), isotropic_cov(0.002))
     # ---- axes and frame ---------------------------------------------------------------------------
     res.frames["foot"] = {"origin": hc.copy(), "rotation": np.column_stack([X, up, Z])}
     # hindfoot: principal axis of the calcaneus block (posterior 45 % of the foot)

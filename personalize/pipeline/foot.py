@@ -21,6 +21,8 @@ from .joint_estimates import AxisEstimates, AxisLine, CentreEstimates, Direction
 from .knee import centre_model_error, centre_scale, condyle_labels, motion_centre
 from .motion import MOTION_ANKLE_AXIS_SD_DEG, PIG_ANKLE_AXIS_SD_DEG
 from .segment_registration import register_with_centre, toe_landmark
+from .pig_uncertainty import pig_axis_sd_deg
+from .virtual_markers import KNEE_STANDING_ROTATION_SD_DEG, knee_axis_pairs
 
 __all__ = ["MRI_ANKLE_AXIS_SD_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE_MEASURED",
            "SUBTALAR_DEFAULT", "estimate_ankle", "estimate_foot_axes", "MRI_ANKLE_MODEL_SD"]
@@ -45,10 +47,17 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
     S = s.upper()
     j_knee, j_ankle = ctx.joints[f"knee_{s}"], ctx.joints[f"ankle_{s}"]
     pig, kind = motion_centre(ctx, "ankle", s, est)
+    extra = ()
+    if f"{S}MMA" not in ctx.static and f"femur_{s}" in est.registrations:
+        # one ankle marker leaves the shank free to turn about the knee-marker line: the knee axis closes it
+        extra = knee_axis_pairs(est.registrations[f"femur_{s}"], j_knee.origin, j_knee.axis, knee.mean, s)
+        est.sources[f"tibia_{s}_axial_rotation"] = (
+            "the MRI knee flexion axis carried by the femur registration (knee rotation between scanner and standing "
+            f"sd {KNEE_STANDING_ROTATION_SD_DEG:g} deg; pipeline.virtual_markers)")
     reg = register_with_centre(f"tibia_{s}", ctx.bones, [f"tibia_{s}", f"fibula_{s}"],
                                (f"{S}ANK", f"{S}MMA", f"{S}TTB", f"{S}HFB"), ctx.static, ctx.meshes, j_knee.centre,
                                knee.gaussian.scaled(1.0 / knee_scale), axis=(j_ankle.origin, j_ankle.axis),
-                               fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)])
+                               fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)], extra=extra)
     scale = centre_scale(ctx, MRI_ANKLE_CENTRE_COV_SCALE, MRI_ANKLE_CENTRE_COV_SCALE_MEASURED)
     mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_ANKLE_MODEL_SD))
     u, sd, _ = reg.transfer_direction(j_ankle.axis, j_ankle.axis_sd_deg)
@@ -57,7 +66,8 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
         motion_axis = Direction(ctx.static[f"{S}ANK"].mean - ctx.static[f"{S}MMA"].mean, MOTION_ANKLE_AXIS_SD_DEG)
         est.sources[f"ankle_axis_{s}_motion"] = f"transmalleolar axis {condyle_labels(ctx.view, 'ankle', s)} of the static trial"
     elif ctx.pig is not None:
-        motion_axis = Direction(ctx.pig.segments[f"tibia_torsioned_{s}"].axes[0][:, 1], PIG_ANKLE_AXIS_SD_DEG)
+        motion_axis = Direction(ctx.pig.segments[f"tibia_torsioned_{s}"].axes[0][:, 1],
+                                pig_axis_sd_deg(ctx, f"tibia_torsioned_{s}", PIG_ANKLE_AXIS_SD_DEG))
         est.sources[f"ankle_axis_{s}_motion"] = "Plug-in-Gait torsioned tibia y axis (tibial torsion from subject.json)"
     else:
         raise InputError(ctx.inputs.static.source, f"no {S} ankle axis from the markers: needs the lateral and medial "

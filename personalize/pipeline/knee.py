@@ -21,8 +21,10 @@ from ..fusion import Fused, fuse_axis, fuse_gaussian
 from ..registration import Registration
 from .joint_estimates import AxisEstimates, CentreEstimates, Direction, JointContext, JointEstimates
 from .motion import (CONDYLES, PIG_KNEE_AXIS_SD_DEG, SHANK_MARKERS, THIGH_MARKERS, condylar_axis, condylar_centre,
-                     motion_knee_axis, pig_centre, subject_marker_radius)
+                     motion_knee_axis, subject_marker_radius)
+from .pig_uncertainty import pig_axis_sd_deg, pig_centre_propagated
 from .segment_registration import register_with_centre
+from .virtual_markers import STANDING_HIP_ROTATION_SD_DEG, virtual_medial_knee
 
 __all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "MRI_KNEE_MODEL_SD",
            "estimate_knee"]
@@ -67,7 +69,11 @@ def motion_centre(ctx: JointContext, joint: str, s: str, est: JointEstimates):
     """The motion estimate of the knee or ankle centre: Plug-in-Gait's (chord function) with its markers, else the
     condyle-marker midpoint (`motion.condylar_centre`); the `Gaussian` and its kind ("pig" or "motion")."""
     if ctx.pig is not None:
-        return pig_centre(ctx.pig, joint, s), "pig"
+        g = pig_centre_propagated(ctx, joint, s)
+        est.sources[f"{joint}_centre_{s}_motion"] = (
+            "Plug-in-Gait chord function of the static trial, covariance propagated from the markers' placement "
+            f"(sd {', '.join(f'{x * 1e3:.0f}' for x in np.sqrt(np.diag(g.cov)))} mm along the lab axes)")
+        return g, "pig"
     try:
         g = condylar_centre(ctx.static, joint, s, marker_radius=subject_marker_radius(ctx.inputs))
     except InputError as exc:
@@ -90,9 +96,19 @@ def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
     S = s.upper()
     j_hip, j_knee = ctx.joints[f"hip_{s}"], ctx.joints[f"knee_{s}"]
     pig, kind = motion_centre(ctx, "knee", s, est)
-    reg = register_with_centre(f"femur_{s}", ctx.bones, [f"femur_{s}"], (f"{S}KNE", f"{S}MFC", f"{S}TRO"), ctx.static,
+    static = ctx.static
+    if f"{S}MFC" not in static:
+        # one knee marker leaves the femur free to turn about the hip-marker line: a virtual medial marker closes it
+        v = virtual_medial_knee(static, ctx.bones, s, hip.mean, est.pelvis[1], j_knee.axis)
+        if v is not None:
+            static = {**static, f"{S}MFC": v}
+            est.sources[f"femur_{s}_axial_rotation"] = (
+                "virtual medial epicondyle marker: knee marker + MRI epicondylar width along the pelvis's medio-lateral "
+                f"axis (standing hip rotation sd {STANDING_HIP_ROTATION_SD_DEG:g} deg; pipeline.virtual_markers)")
+    reg = register_with_centre(f"femur_{s}", ctx.bones, [f"femur_{s}"], (f"{S}KNE", f"{S}MFC", f"{S}TRO"), static,
                                ctx.meshes, j_hip.centre, hip.gaussian.scaled(1.0 / hip_scale),
                                axis=(j_knee.origin, j_knee.axis), fallback=[(f"{kind}_knee_centre", j_knee.centre, pig)])
+    est.registrations[f"femur_{s}"] = reg          # the shank's registration leans on it (`estimate_ankle`)
     scale = centre_scale(ctx, MRI_KNEE_CENTRE_COV_SCALE, MRI_KNEE_CENTRE_COV_SCALE_MEASURED)
     mri = reg.transfer_estimate(j_knee.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_KNEE_MODEL_SD))
     u, sd, _ = reg.transfer_direction(j_knee.axis, j_knee.axis_sd_deg)
@@ -107,7 +123,8 @@ def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
             Path(t.source).name for t in ctx.dynamic)
     except (InputError, FitError) as exc:
         if ctx.pig is not None:
-            motion_axis = Direction(ctx.pig.segments[f"femur_{s}"].axes[0][:, 1], PIG_KNEE_AXIS_SD_DEG)
+            motion_axis = Direction(ctx.pig.segments[f"femur_{s}"].axes[0][:, 1],
+                                    pig_axis_sd_deg(ctx, f"femur_{s}", PIG_KNEE_AXIS_SD_DEG))
             est.sources[f"knee_axis_{s}_motion"] = "Plug-in-Gait femur y axis of the static trial"
             est.notes.append(f"knee {S}: no functional knee axis ({exc}); Plug-in-Gait axis used")
         else:

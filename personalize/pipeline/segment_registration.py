@@ -21,7 +21,7 @@ __all__ = ["register_with_centre", "toe_landmark"]
 
 def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static: dict, meshes: dict,
                          centre_mri: Gaussian | None, centre_lab: Gaussian | None, axis=None, virtual=None,
-                         fallback=()) -> Registration:
+                         fallback=(), extra=()) -> Registration:
     """Register one segment from its markers plus one joint centre known in both frames.
 
     ``axis = (point, direction)`` (scanner frame): the landmarks are projected on
@@ -31,7 +31,8 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
     ``fallback``: extra (name, mri `Gaussian`, lab `Gaussian`) pairs used only when
     fewer than 3 correspondences are available (a Plug-in-Gait marker set without
     medial knee/ankle markers: the distal joint centre of Plug-in-Gait stands in,
-    and the MRI estimates of that segment are then not independent of the motion ones).
+    and the MRI estimates of that segment are then not independent of the motion ones).  ``extra``: (name,
+    mri `Gaussian`, lab `Gaussian`) pairs always used (`virtual_markers.knee_axis_pairs`).
     """
     corr = marker_correspondences(bones, bone_names, marker_names, static, surfaces=meshes, axis=axis)
     for n, (p, nrm) in (virtual or {}).items():
@@ -39,6 +40,8 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
             corr.add_marker(n, Gaussian(p, np.zeros((3, 3))), static[n], nrm)
     if centre_mri is not None and centre_lab is not None:
         corr.add("joint_centre", centre_mri, centre_lab)
+    for name, mri, lab in extra:
+        corr.add(name, mri, lab)
     if len(corr) < 3:
         for name, mri, lab in fallback:
             corr.add(name, mri, lab)
@@ -48,11 +51,12 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
 
 
 def toe_landmark(calcn, S: str) -> dict:
-    """Virtual TOE landmark: mid-point of the metatarsal heads (D1M, D5M), normal = the foot frame's up (Y) axis."""
+    """Virtual TOE landmark: mid-point of the dorsal points of the first and fifth metatarsal head spheres
+    (``met1_dorsal``, ``met5_dorsal`` of `personalize.landmarks.foot`), normal = the foot frame's up (Y) axis."""
     if calcn is None:
         return {}
     lm, fr = calcn.landmarks, calcn.frames
-    if f"{S}D1M" not in lm or f"{S}D5M" not in lm or "foot" not in fr:
+    if "met1_dorsal" not in lm or "met5_dorsal" not in lm or "foot" not in fr:
         return {}
-    mid = 0.5 * (lm[f"{S}D1M"].position + lm[f"{S}D5M"].position)
+    mid = 0.5 * (lm["met1_dorsal"].position + lm["met5_dorsal"].position)
     return {f"{S}TOE": (mid, np.asarray(fr["foot"]["rotation"], float)[:, 1])}

@@ -35,7 +35,9 @@ does not move, so the femur registration carries them into the lab,
 
 and they are paired with the same scanner points on the shank; only the
 knee's secondary rotations between the scanner and the standing pose move
-them, with sd :math:`\sigma_k` = `KNEE_STANDING_ROTATION_SD_DEG`.  The
+them, with sd :math:`\sigma_k` = `KNEE_STANDING_ROTATION_SD_DEG`.  They are
+placed about the knee centre the shank is registered to (`knee_axis_pairs`),
+so they constrain the direction only.  The
 tibia's own torsion then comes from the MRI, not from a wand.
 """
 from __future__ import annotations
@@ -131,18 +133,24 @@ def virtual_medial_knee(static: dict, bones: dict, side: str, hip: np.ndarray, p
     return _virtual(lat, n, thigh, L, STANDING_HIP_ROTATION_SD_DEG)
 
 
-def knee_axis_pairs(reg_femur, knee_centre, knee_axis, side: str) -> list:
+def knee_axis_pairs(reg_femur, knee_centre, knee_axis, knee_lab, side: str) -> list:
     """The two knee-axis points of the module docstring as (name, scanner `Gaussian`, lab `Gaussian`) pairs.
+
+    Placed about the knee centre the shank is registered to (`knee_lab`, lab, m; the fused one), along the
+    femur registration's knee axis, so that they add the axis's direction and nothing else:
+    y± = k ± ℓ R_f u, Σ± = ℓ² [R_f u]× Ω_f [R_f u]×ᵀ + (ℓ sin σ_k)² I (Ω_f the registration's rotation covariance).
 
     reg_femur : the femur's `personalize.registration.Registration`; knee_centre, knee_axis : (3,) the MRI knee
     centre and flexion axis (scanner, m).  Pass them as `register_with_centre`'s ``extra``.
     """
+    from lowerlimb.geometry import skew
+
     u = _unit(np.asarray(knee_axis, float))
     c = np.asarray(knee_centre, float)
-    out = []
-    for sign, tag in ((1.0, "a"), (-1.0, "b")):
-        p = c + sign * KNEE_AXIS_HALF_LENGTH * u
-        y, C = reg_femur.transfer_point(p)
-        C = C + (KNEE_AXIS_HALF_LENGTH * np.sin(np.radians(KNEE_STANDING_ROTATION_SD_DEG)))**2 * np.eye(3)
-        out.append((f"knee_axis_{side}_{tag}", Gaussian(p, 1e-8 * np.eye(3)), Gaussian(y, C)))
-    return out
+    w = reg_femur.R @ u
+    Om = np.asarray(reg_femur.cov, float)[:3, :3]
+    ell = KNEE_AXIS_HALF_LENGTH
+    C = ell**2 * skew(w) @ Om @ skew(w).T + (ell * np.sin(np.radians(KNEE_STANDING_ROTATION_SD_DEG)))**2 * np.eye(3)
+    k = np.asarray(knee_lab, float)
+    return [(f"knee_axis_{side}_{tag}", Gaussian(c + sign * ell * u, 1e-8 * np.eye(3)), Gaussian(k + sign * ell * w, C))
+            for sign, tag in ((1.0, "a"), (-1.0, "b"))]
