@@ -48,10 +48,15 @@ subject standing still).  The model is written in OpenSim's conventions:
 
 The hip and knee angles are anatomical (zero when the frames are aligned),
 so the standing pose carries its own (``standing_q``; a standing knee is
-typically a few degrees from straight); a subject standing upright facing +X
-has every coordinate but the pelvis translations near zero.  The leg's
-rotational coordinates are clamped to their `lowerlimb.topology` ranges
-(IK keeps them inside, as OpenSim's IK does for clamped coordinates).
+typically a few degrees from straight).  A subject standing upright facing +X
+has the pelvis list and rotation and the knee and ankle angles near zero; the
+pelvis tilt is the ISB frame's, the ASIS-PSIS plane's tilt (posterior tilt
+positive: an anteriorly tilted pelvis reads about -10 to -15 deg, -12 deg on
+the phantoms; gait2392's own pelvis frame is within 2.4 deg of its ASIS-sacral
+line, so it reads the same), and the hip flexion of a vertical femur about as
+much positive.  The leg's rotational coordinates are clamped to their
+`lowerlimb.topology` ranges (IK keeps them inside, as OpenSim's IK does for
+clamped coordinates).
 
 `PersonalModel.body_frames` stays in the internal frame:
 x_internal = o + R x_body.  Markers are placed from the static trial:
