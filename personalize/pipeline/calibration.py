@@ -60,8 +60,8 @@ def coverage(errors, covs) -> dict:
             "coverage95": float(np.mean(d2 <= CHI2_3_95))}
 
 
-def fit_scale_and_model_error(errors, covs) -> tuple[float, float]:
-    """(s, σ) maximising the Gaussian likelihood of `errors` under N(0, s C_k + σ² I).
+def fit_scale_and_model_error(errors, covs, min_scale: float = 0.1) -> tuple[float, float]:
+    """(s, σ) maximising the Gaussian likelihood of `errors` under N(0, s C_k + σ² I), s ≥ `min_scale`.
 
     Model: e_k ~ N(0, s C_k + σ² I) independently, C_k the propagated covariance of case k (m²), s a
     variance scale, σ a model-error sd (m) that the propagation does not see.  Minimised:
@@ -69,7 +69,10 @@ def fit_scale_and_model_error(errors, covs) -> tuple[float, float]:
         L(s, σ) = Σ_k [ ln det(s C_k + σ² I) + e_kᵀ (s C_k + σ² I)⁻¹ e_k ]
 
     over ln s and ln σ (Nelder-Mead from the moment solution s = mean d² / 3, σ = 0.1 rms error;
-    σ below 1 µm is reported as 0).
+    σ below 1 µm is reported as 0).  When the optimum has s below `min_scale` (the propagated covariance
+    explains nothing of the errors), σ is refitted with s = `min_scale`: the pipeline divides by s to
+    take a calibrated anchor back to the registration's scale, and the registration's own spread should
+    still rank its subjects.
 
     Parameters
     ----------
@@ -98,6 +101,10 @@ def fit_scale_and_model_error(errors, covs) -> tuple[float, float]:
         if best is None or r.fun < best.fun:
             best = r
     s, sd = float(np.exp(best.x[0])), float(np.exp(best.x[1]))
+    if s < min_scale:
+        r = minimize(lambda y: nll([np.log(min_scale), y[0]]), [best.x[1]], method="Nelder-Mead",
+                     options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 2000})
+        s, sd = float(min_scale), float(np.exp(r.x[0]))
     return s, (sd if sd >= 1e-6 else 0.0)
 
 
