@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 from kinematics.gait.soft_tissue import (REFERENCE_AGE, REFERENCE_BMI, SCALE_LOG_SD, SITE_LOG_SD, TissueScalePrior,
                                          body_fat_fraction, tissue_prior, tissue_scale_prior)
 from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
-from personalize.pipeline.calibration import CHI2_3_95, coverage, fit_scale_and_model_error
+from personalize.pipeline.calibration import CHI2_3_95, coverage, fit_model_error, fit_scale_and_model_error
 from personalize.registration import PALPATION_SD, register_landmarks
 
 R_TRUE = Rotation.from_rotvec([0.2, -0.1, 1.4]).as_matrix()
@@ -119,4 +119,8 @@ def test_coverage_and_model_error_fit():
     assert s == pytest.approx(s_true, rel=0.25) and sd == pytest.approx(sd_true, rel=0.25)
     fitted = coverage(E, s * C + sd ** 2 * np.eye(3))
     assert abs(fitted["coverage95"] - 0.95) < 0.03
+    # scale held at 1: the model-error sd of errors N(0, C_k + σ² I) comes back; none for honest covariances
+    E1 = np.array([rng.multivariate_normal(np.zeros(3), c + sd_true ** 2 * np.eye(3)) for c in C])
+    assert fit_model_error(E1, C) == pytest.approx(sd_true, rel=0.15)
+    assert fit_model_error(E1, C + sd_true ** 2 * np.eye(3)) < 0.3 * sd_true
     assert CHI2_3_95 == pytest.approx(7.8147, abs=1e-4)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["constants", "calibration_record", "CALIBRATION_FILE", "coverage", "fit_scale_and_model_error",
+__all__ = ["constants", "calibration_record", "CALIBRATION_FILE", "coverage", "fit_scale_and_model_error", "fit_model_error",
            "record_realistic_fit", "record_realistic_check", "CHI2_3_95"]
 
 CALIBRATION_FILE = Path(__file__).with_name("calibration.json")
@@ -108,6 +108,26 @@ def fit_scale_and_model_error(errors, covs, min_scale: float = 0.1) -> tuple[flo
     return s, (sd if sd >= 1e-6 else 0.0)
 
 
+def fit_model_error(errors, covs) -> float:
+    """σ (m) maximising the Gaussian likelihood of `errors` under N(0, C_k + σ² I): the model-error sd a
+    source's stated covariances C_k lack (the scale kept at 1; 0 when they already cover the errors).
+
+    Minimised over ln σ: L(σ) = Σ_k [ ln det(C_k + σ² I) + e_kᵀ (C_k + σ² I)⁻¹ e_k ].
+    """
+    from scipy.optimize import minimize_scalar
+
+    E = np.asarray(errors, float).reshape(-1, 3)
+    C = np.asarray(covs, float).reshape(-1, 3, 3)
+
+    def nll(y):
+        S = C + np.exp(2 * y) * np.eye(3)
+        return float(np.sum(np.linalg.slogdet(S)[1]) + np.einsum("ka,kab,kb->", E, np.linalg.inv(S), E))
+
+    r = minimize_scalar(nll, bounds=(np.log(1e-6), np.log(0.2)), method="bounded", options={"xatol": 1e-6})
+    sd = float(np.exp(r.x))
+    return sd if nll(r.x) < nll(np.log(1e-6)) and sd > 2e-6 else 0.0
+
+
 def _write_record(doc: dict) -> None:
     from lowerlimb.atomic import write_text
 
@@ -123,7 +143,7 @@ def record_realistic_fit(fits: dict, names: dict, benchmark: str, training_dir: 
     doc = json.loads(CALIBRATION_FILE.read_text(encoding="utf-8"))
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     for jn, f in fits.items():
-        sname, mname = names[jn]
+        sname, mname = names[jn][:2]
         train = (f"{f['subjects']} realistic phantom subjects ({f['legs']} legs, prior soft tissue), "
                  f"draw_realistic_subjects(seed={f['training_seed']}), runnable={f['runnable']}")
         stats = {k: f[k] for k in ("mri_before", "mri_after", "fused_before", "fused_after_offline",
@@ -135,6 +155,12 @@ def record_realistic_fit(fits: dict, names: dict, benchmark: str, training_dir: 
         doc["constants"][mname] = {"value": round(f["model_sd_m"], 5), "units": "m per axis", "benchmark": benchmark,
                                    "training_set": train, "fitted": when,
                                    "note": "model-error sd added to the scaled MRI centre covariance (prior soft tissue)"}
+        if len(names[jn]) > 2 and "motion_model_sd_m" in f:
+            doc["constants"][names[jn][2]] = {
+                "value": round(f["motion_model_sd_m"], 5), "units": "m per axis", "benchmark": benchmark,
+                "training_set": train, "fitted": when,
+                "method": "maximum likelihood of the motion centre errors under N(0, C_stated + sd^2 I)",
+                "measured": {k: f[k] for k in ("motion_before", "motion_after", "motion_median_error_mm") if k in f}}
     _write_record(doc)
 
 
@@ -142,7 +168,7 @@ def record_realistic_check(report: dict, names: dict, seed: int, runnable: str, 
     """Add the CHECK seed's coverage (`benchmarks/realistic_calibration.py` check) to the constants' records."""
     doc = json.loads(CALIBRATION_FILE.read_text(encoding="utf-8"))
     for jn, rep in report.items():
-        sname, _ = names[jn]
+        sname = names[jn][0]
         rec = doc["constants"].setdefault(sname, {})
         rec["check"] = {"seed": seed, "runnable": runnable, "legs": rep["legs"], "results": folder,
                         **{src: rep[src] for src in ("mri", "motion", "fused") if src in rep}}

@@ -25,7 +25,8 @@ from .pig_uncertainty import pig_axis_sd_deg
 from .virtual_markers import KNEE_STANDING_ROTATION_SD_DEG, knee_axis_pairs
 
 __all__ = ["MRI_ANKLE_AXIS_SD_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE_MEASURED",
-           "SUBTALAR_DEFAULT", "estimate_ankle", "estimate_foot_axes", "MRI_ANKLE_MODEL_SD"]
+           "SUBTALAR_DEFAULT", "estimate_ankle", "estimate_foot_axes", "MRI_ANKLE_MODEL_SD",
+           "MOTION_ANKLE_MODEL_SD"]
 
 #: scale of the shank-registration ankle axis sd: claimed median 3.5 deg vs actual median 0.75 deg on 24 TRAINING
 #: phantom subjects, with rare gross talus failures of 14-77 deg that carry large claimed sds (calibration.json)
@@ -37,6 +38,9 @@ MRI_ANKLE_CENTRE_COV_SCALE_MEASURED = 0.050
 #: model-error sd (m per axis) added to the scaled MRI ankle centre covariance with prior soft tissue (realistic
 #: phantoms, benchmarks/realistic_calibration.py; calibration.json)
 MRI_ANKLE_MODEL_SD = 0.0
+#: model-error sd (m per axis) added to the motion ankle centre's stated covariance (realistic phantoms,
+#: benchmarks/realistic_calibration.py; calibration.json)
+MOTION_ANKLE_MODEL_SD = 0.0
 #: default subtalar axis (Inman 1976): 42 deg up from the foot's long axis, 23 deg medial, in the static lab
 SUBTALAR_DEFAULT = (42.0, 23.0)
 
@@ -74,6 +78,7 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
                                                    "malleolus markers or the Plug-in-Gait markers")
     axis = AxisEstimates(mri_axis, motion_axis, fuse_axis([mri_axis.direction, motion_axis.direction],
                                                           [mri_axis.sd_deg, motion_axis.sd_deg], ("mri", "motion")))
+    pig = pig.inflated(MOTION_ANKLE_MODEL_SD ** 2 * np.eye(3))
     centre = CentreEstimates(mri, pig, fuse_gaussian([mri, pig], ("mri", "motion")))
     return reg, centre, axis, scale
 

@@ -27,6 +27,7 @@ from .segment_registration import register_with_centre
 from .virtual_markers import STANDING_HIP_ROTATION_SD_DEG, virtual_medial_knee
 
 __all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "MRI_KNEE_MODEL_SD",
+           "MOTION_KNEE_MODEL_SD",
            "estimate_knee"]
 
 #: scale of the femur-registration knee axis sd: the claimed 2.2 deg median vs 0.34 deg rms actual on 24 TRAINING
@@ -41,6 +42,9 @@ MRI_KNEE_CENTRE_COV_SCALE_MEASURED = 0.017
 #: model-error sd (m per axis) added to the scaled MRI knee centre covariance with prior soft tissue (realistic
 #: phantoms, benchmarks/realistic_calibration.py; calibration.json)
 MRI_KNEE_MODEL_SD = 0.0
+#: model-error sd (m per axis) added to the motion knee centre's stated covariance (realistic phantoms,
+#: benchmarks/realistic_calibration.py; calibration.json)
+MOTION_KNEE_MODEL_SD = 0.0
 
 
 def centre_model_error(ctx: JointContext, sd: float) -> np.ndarray:
@@ -134,5 +138,6 @@ def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
             est.notes.append(f"knee {S}: no functional knee axis ({exc}); transepicondylar line used")
     axis = AxisEstimates(mri_axis, motion_axis, fuse_axis([mri_axis.direction, motion_axis.direction],
                                                           [mri_axis.sd_deg, motion_axis.sd_deg], ("mri", "motion")))
+    pig = pig.inflated(MOTION_KNEE_MODEL_SD ** 2 * np.eye(3))
     centre = CentreEstimates(mri, pig, fuse_gaussian([mri, pig], ("mri", "motion")))
     return reg, centre, axis, scale
