@@ -115,10 +115,15 @@ def test_harrington_hip_in_the_pelvis_frame():
     static = {"RASI": _gauss(o + [0.01 + r, -pw / 2, 0]), "LASI": _gauss(o + [0.01 + r, pw / 2, 0]),
               "RPSI": _gauss(o + [-pd - 0.02 - r, -0.04, 0]), "LPSI": _gauss(o + [-pd - 0.02 - r, 0.04, 0])}
     for side, sgn in (("r", -1.0), ("l", 1.0)):
-        g = harrington_hip(static, side, np.eye(3), t, r)
+        g = harrington_hip(static, side, np.eye(3), t, r, palpation=False)
         want = o + 1e-3 * np.array([-0.24 * pd * 1e3 - 9.9, sgn * (0.33 * pw * 1e3 + 7.3), -0.30 * pw * 1e3 - 10.9])
         np.testing.assert_allclose(g.mean, want, atol=1e-9)
         np.testing.assert_allclose(g.cov, HARRINGTON_SD**2 * np.eye(3), atol=1e-15)
+        # the ASIS / PSIS markers' palpation through the pelvis frame: 4-6 mm more per axis for this pelvis
+        gp = harrington_hip(static, side, np.eye(3), t, r)
+        np.testing.assert_allclose(gp.mean, g.mean, atol=1e-15)
+        extra = np.sqrt(np.diag(gp.cov) - HARRINGTON_SD**2)
+        assert np.all((extra > 0.004) & (extra < 0.0065)), extra
     # the sacral marker stands in for the PSIS (OpenSim's V.Sacral)
     sac = {k: v for k, v in static.items() if "PSI" not in k}
     sac["SACR"] = _gauss(o + [-pd - 0.02 - r, 0, 0])

@@ -206,7 +206,8 @@ HARRINGTON = {"x": (-0.24, -9.9), "y": (-0.30, -10.9), "z": (0.33, 7.3)}
 HARRINGTON_SD = float(np.sqrt((12.3**2 + 5.9**2) / 3.0)) * 1e-3
 
 
-def harrington_hip(static: dict, side: str, axes, skin: dict | None = None, marker_radius: float | None = None):
+def harrington_hip(static: dict, side: str, axes, skin: dict | None = None, marker_radius: float | None = None,
+                   palpation: bool = True):
     """Hip centre (static lab, m) by the Harrington et al. (2007) regression of the pelvis markers, as a `Gaussian`.
 
     The markers are moved in to the bone first: the mid-ASIS back by t_ASIS + r, the mid-PSIS (or the sacral
@@ -214,8 +215,11 @@ def harrington_hip(static: dict, side: str, axes, skin: dict | None = None, mark
     `personalize.registration.skin_prior`; r the marker radius), so PW = |RASI - LASI| and PD = the
     anterior distance mid-ASIS - mid-PSIS are the bony ones the regression was fitted on.
 
-    Cov = A diag(σ²) Aᵀ + J Σ_t Jᵀ: σ = `HARRINGTON_SD` per axis, and the tissue uncertainty through
-    x_hip = o - (t_A + r) - 0.24 (PD - t_A - t_P - 2 r): ∂x/∂t_A = -0.76, ∂x/∂t_P = +0.24 (pelvis x axis).
+    Cov = A diag(σ²) Aᵀ + J Σ_t Jᵀ + Σ_p: σ = `HARRINGTON_SD` per axis (the regression's error on bony landmarks);
+    the tissue uncertainty through x_hip = o - (t_A + r) - 0.24 (PD - t_A - t_P - 2 r): ∂x/∂t_A = -0.76,
+    ∂x/∂t_P = +0.24 (pelvis x axis); with `palpation`, Σ_p the markers' palpation (`PALPATION_SD` of ASI and
+    PSI per axis, p_A, p_P) through the pelvis frame: the origin (p_A² / 2) I, and its rotations about z and x
+    (sd √2 p_A / PW) and about y (sd √((p_A² + p_P²) / 2) / PD), each moving the centre by ω × (c - o).
     """
     from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
 
@@ -242,15 +246,24 @@ def harrington_hip(static: dict, side: str, axes, skin: dict | None = None, mark
     lateral = -y if side == "r" else y
     c = o_bone + 1e-3 * ((ax_ * pd * 1e3 + bx) * x + (ay * pw * 1e3 + by) * z + (az * pw * 1e3 + bz) * lateral)
     cov = HARRINGTON_SD**2 * np.eye(3) + ((0.76 * tA_sd) ** 2 + (0.24 * tP_sd) ** 2) * np.outer(x, x)
+    if palpation:
+        pA, pP = PALPATION_SD["ASI"], PALPATION_SD["PSI"]
+        d = c - o
+        cov = cov + 0.5 * pA**2 * np.eye(3)
+        for w, sd in ((z, np.sqrt(2.0) * pA / pw), (x, np.sqrt(2.0) * pA / pw),
+                      (y, np.sqrt(0.5 * (pA**2 + pP**2)) / max(pd, 0.05))):
+            v = np.cross(w, d)
+            cov = cov + sd**2 * np.outer(v, v)
     return Gaussian(c, cov)
 
 
 # --------------------------------------------------------------------------- knee and ankle from condyle markers
 #: per-axis sd (m) of a palpated marker's position in the skin plane, by landmark: 10 mm rms (2-D) at the femoral
-#: epicondyles, 5 mm at the malleoli, after the inter-examiner dispersions of Della Croce, Cappozzo & Kerrigan 1999
-#: (Med Biol Eng Comput 37:155; rms 6-21 mm, largest at the epicondyles)
+#: epicondyles, 5 mm at the malleoli, 8 and 10 mm at the anterior and posterior iliac spines, after the
+#: inter-examiner dispersions of Della Croce, Cappozzo & Kerrigan 1999 (Med Biol Eng Comput 37:155; rms 6-21 mm,
+#: largest at the epicondyles)
 PALPATION_SD = {"KNE": 0.010 / np.sqrt(2.0), "MFC": 0.010 / np.sqrt(2.0), "ANK": 0.005 / np.sqrt(2.0),
-                "MMA": 0.005 / np.sqrt(2.0)}
+                "MMA": 0.005 / np.sqrt(2.0), "ASI": 0.008 / np.sqrt(2.0), "PSI": 0.010 / np.sqrt(2.0)}
 #: isotropic sd (m) of the distance between the epicondyle (malleolus) midpoint and the joint centre of a model
 #: (the flexion axis passes near, not through, the prominences; the most prominent malleolar points lie above the
 #: talocrural axis).  Chosen on realistic subject 002 (ICL_MRI bones, ior set): per-axis rms error of the midpoints
