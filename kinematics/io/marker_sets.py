@@ -301,7 +301,8 @@ def detect_marker_set(trial, candidates=None) -> SetMatch:
 
 def canonical_names(ms: MarkerSet | None, labels) -> dict:
     """label -> internal name: the set's ``landmark`` for markers that have one, ``SACR`` for a sacral pelvis marker
-    without one (label containing ``SAC``), `LEGACY_LANDMARKS` for labels the set leaves out, else the label.
+    without one (label containing ``SAC``), `LEGACY_LANDMARKS` for labels the set leaves out, Plug-in-Gait's
+    THI / TIB / TOE for a renamed Plug-in-Gait set (`_pig_roles`), else the label.
 
     A name already used by another label is never taken (the label then keeps its own name).
     """
@@ -322,6 +323,39 @@ def canonical_names(ms: MarkerSet | None, labels) -> dict:
         else:
             out[lab] = new
             taken.add(new)
+    for lab, new in _pig_roles(ms, labels).items():
+        if out.get(lab) == lab and new not in taken:
+            out[lab] = new
+            taken.add(new)
+    return out
+
+
+#: Plug-in-Gait's technical (non-landmark) markers and the body each rides on
+_PIG_ROLES = (("THI", "femur"), ("TIB", "tibia"), ("TOE", "calcn"))
+
+
+def _pig_roles(ms: MarkerSet | None, labels) -> dict:
+    """A lab's own labels for Plug-in-Gait's THI, TIB and TOE, where its set makes them unambiguous.
+
+    A side whose femur, tibia and calcaneus each carry exactly one marker without a ``landmark`` (dynamic,
+    in `labels`) is a Plug-in-Gait set under other names (thigh wand, shank wand, toe marker): those three take
+    the Plug-in-Gait names, so its static reconstruction can run.  Sides with clusters or several skin markers
+    on a body get nothing (the roles would be guesses).
+    """
+    if ms is None:
+        return {}
+    labels = set(labels)
+    out = {}
+    for S, s in (("R", "r"), ("L", "l")):
+        picked = {}
+        for role, body in _PIG_ROLES:
+            free = [k for k, v in ms.markers.items() if v.segment == f"{body}_{s}" and not v.landmark
+                    and not v.static_only and k in labels]
+            if len(free) != 1:
+                break
+            picked[free[0]] = f"{S}{role}"
+        else:
+            out.update(picked)
     return out
 
 
