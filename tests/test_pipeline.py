@@ -39,7 +39,7 @@ def test_outputs_written(subject):
         assert (out / f).is_file(), f
     on_disk = json.loads((out / "summary.json").read_text())
     assert on_disk["errors"]["hip_centre_mm"]["fused"] == pytest.approx(summary["errors"]["hip_centre_mm"]["fused"])
-    assert "static trial" in on_disk["frame"]
+    assert "static pose's facing" in on_disk["frame"] and on_disk["lab"]["up"] == "+Z"
     html = (out / "report.html").read_text()
     for text in ("Per-joint estimates", "Inverse kinematics", "Bones and landmarks", "<img"):
         assert text in html
@@ -237,7 +237,9 @@ def test_plug_in_gait_marker_set_only(subject, tmp_path):
         t = read_c3d(p)
         write_c3d(p, t.subset([n for n in t.names if n[1:] in keep]))
     s = run_subject(pig, tmp_path / "o", report=False)
-    assert any("Plug-in-Gait joint centre" in n for n in s["notes"])        # femur/shank registered with PiG centres
+    # one marker per knee / ankle: the femur's and shank's axial rotation from the virtual medial marker and knee axis
+    assert s["sources"]["femur_r_axial_rotation"].startswith("virtual medial epicondyle marker")
+    assert s["sources"]["tibia_l_axial_rotation"].startswith("the MRI knee flexion axis")
     assert any("no functional knee axis" in n for n in s["notes"])
     assert s["sources"]["hip_r_motion"].startswith("Plug-in-Gait (Davis)")    # no thigh cluster for SCoRE
     # the MRI hip centres do not depend on the thigh markers: same as with the full marker set
