@@ -170,13 +170,13 @@ def report(folder: Path, results: str = "results") -> dict:
     return out
 
 
-def fit(folder: Path) -> dict:
+def fit(folder: Path, results: str = "results") -> dict:
     """(s_j, σ_j) per joint by maximum likelihood on the training legs (prior soft tissue), and their coverage."""
     from personalize.fusion import fuse_gaussian
     from personalize.pipeline.calibration import coverage, fit_model_error, fit_scale_and_model_error
 
-    rows = [r for r in legs(folder) if not r["measured"]]
-    meta = json.loads((folder / "results.json").read_text())
+    rows = [r for r in legs(folder, results) if not r["measured"]]
+    meta = json.loads((folder / f"{results}.json").read_text())
     out = {}
     for jn in JOINTS:
         rs = [r for r in rows if r["joint"] == jn]
@@ -264,10 +264,12 @@ def main(argv=None) -> int:
     b = sub.add_parser("fit")
     b.add_argument("--train", type=Path, nargs="+", required=True)
     b.add_argument("--write", action="store_true")
+    b.add_argument("--results", default="results")
     c = sub.add_parser("check")
     c.add_argument("--dirs", type=Path, nargs="+", required=True)
     c.add_argument("--record", action="store_true")
     c.add_argument("--results", default="results")
+    c.add_argument("--train-results", default="results")
     c.add_argument("--offline", type=Path, default=None,
                    help="a training folder: apply its fit to --dirs' legs without a rerun (fused again per leg)")
     args = ap.parse_args(argv)
@@ -280,16 +282,16 @@ def main(argv=None) -> int:
 
         res = {}
         for folder in args.train:
-            res[str(folder)] = fit(folder)
+            res[str(folder)] = fit(folder, args.results)
         print(json.dumps(res, indent=1, default=float))
         if args.write:
             for folder, r in res.items():
-                record_realistic_fit(r, CONSTANTS, "benchmarks/realistic_calibration.py fit", folder)
+                record_realistic_fit(r, CONSTANTS, "benchmarks/realistic_calibration.py fit", f"{folder}/{args.results}")
         return 0
     from personalize.pipeline.calibration import record_realistic_check
 
     if args.offline is not None:
-        fits = fit(args.offline)
+        fits = fit(args.offline, args.train_results)
         for folder in args.dirs:
             print(folder, json.dumps(offline_check(folder, fits, args.results), indent=1, default=float))
         return 0

@@ -33,18 +33,18 @@ __all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENT
 #: scale of the femur-registration knee axis sd: the claimed 2.2 deg median vs 0.34 deg rms actual on 24 TRAINING
 #: phantom subjects (their knee markers sit exactly on the flexion axis; calibration.json)
 MRI_KNEE_AXIS_SD_SCALE = 0.107
-#: variance scale of the registered MRI knee centre, prior pelvic tissue only (8 bone-only TRAINING subjects,
-#: 16 legs) and with the pelvic tissue measured (12 subjects with the skin label, 24 legs): mean Mahalanobis d² = 3
-#: (benchmarks/knee_ankle_calibration.py; calibration.json).  Phantom-calibrated: use 1.0 on real data until
-#: calibrated there
-MRI_KNEE_CENTRE_COV_SCALE = 0.14
+#: variance scale of the registered MRI knee centre: prior pelvic tissue, with `MRI_KNEE_MODEL_SD`, maximum
+#: likelihood on the realistic phantoms (benchmarks/realistic_calibration.py, 10 legs of seed 1000; the optimum
+#: 5e-15 floored at 0.1); with the pelvic tissue measured (12 analytic subjects with the skin label, 24 legs):
+#: mean Mahalanobis d² = 3 (benchmarks/knee_ankle_calibration.py; calibration.json)
+MRI_KNEE_CENTRE_COV_SCALE = 0.1
 MRI_KNEE_CENTRE_COV_SCALE_MEASURED = 0.017
 #: model-error sd (m per axis) added to the scaled MRI knee centre covariance with prior soft tissue (realistic
 #: phantoms, benchmarks/realistic_calibration.py; calibration.json)
-MRI_KNEE_MODEL_SD = 0.0
+MRI_KNEE_MODEL_SD = 0.01137
 #: model-error sd (m per axis) added to the motion knee centre's stated covariance (realistic phantoms,
 #: benchmarks/realistic_calibration.py; calibration.json)
-MOTION_KNEE_MODEL_SD = 0.0
+MOTION_KNEE_MODEL_SD = 0.0104
 
 
 def centre_model_error(ctx: JointContext, sd: float) -> np.ndarray:
