@@ -22,9 +22,9 @@ def checked(tmp_path_factory):
     seen = {}
     orig = mc.check_model
 
-    def spy(pm, meshes_lab, source, skin=None, bone_lengths=None):
+    def spy(pm, meshes_lab, source, skin=None, bone_lengths=None, bony=frozenset()):
         seen.update(pm=pm, meshes=meshes_lab, source=source, lengths=bone_lengths)
-        seen["checks"] = orig(pm, meshes_lab, source, skin, bone_lengths)
+        seen["checks"] = orig(pm, meshes_lab, source, skin, bone_lengths, bony)
         return seen["checks"]
 
     mp = pytest.MonkeyPatch()
@@ -51,6 +51,18 @@ def test_phantom_model_passes_with_margin(checked):
     assert max(c.distance for c in joints) < 0.005
     bony = [c for c in markers if c.limit < mc.OFF_BONE_MARKER_SURFACE_MARGIN]
     assert len(bony) >= 10 and max(c.distance for c in bony) < 0.045
+
+
+def test_a_label_the_marker_set_puts_on_a_landmark_is_held_to_the_bony_limit(checked):
+    """A lab's own label for a bony-landmark marker gets the 60 mm limit, not the off-bone 150 mm: the farthest
+    device marker (73-80 mm from its bone) passes as off-bone and fails once the marker set calls it bony."""
+    _, _, _, seen = checked
+    off = [c for c in seen["checks"] if c.kind == "marker" and c.limit == mc.OFF_BONE_MARKER_SURFACE_MARGIN]
+    far = max(off, key=lambda c: c.distance)
+    name = far.item.split()[1]
+    assert mc.MARKER_SURFACE_MARGIN < far.distance < mc.OFF_BONE_MARKER_SURFACE_MARGIN
+    again = {c.item: c for c in mc.model_checks(seen["pm"], seen["meshes"], bony=frozenset({name}))}
+    assert again[far.item].limit == mc.MARKER_SURFACE_MARGIN and not again[far.item].passed
 
 
 def test_segment_lengths_match_the_bones(checked):

@@ -17,7 +17,8 @@ Two tests on the built model in the static lab frame (the bones moved there by t
       d_m = min_{x ∈ S} ‖m - x‖ ≤ MARKER_SURFACE_MARGIN,
 
   or within `OFF_BONE_MARKER_SURFACE_MARGIN` for a marker that does not sit on a bony landmark (wand,
-  cluster and device markers: not in `marker_registration.SEGMENT_MARKERS`).  Where the soft tissue under a
+  cluster and device markers: neither in `marker_registration.SEGMENT_MARKERS` nor given a ``landmark`` by the
+  subject's marker set).  Where the soft tissue under a
   marker was measured in the MRI (`personalize.skin.SkinThickness` t ± s), the limit is at least
   t + `SKIN_SD_FACTOR` s + the marker radius: a thick but measured tissue is not a failure.
 
@@ -115,7 +116,8 @@ def bone_segment_lengths(joints: dict, sides) -> dict:
     return out
 
 
-def model_checks(pm, meshes_lab: dict, skin: dict | None = None, bone_lengths: dict | None = None) -> list[ModelCheck]:
+def model_checks(pm, meshes_lab: dict, skin: dict | None = None, bone_lengths: dict | None = None,
+                 bony: frozenset = frozenset()) -> list[ModelCheck]:
     """Every joint-in-box, marker-on-surface and segment-length test of a built model.
 
     Parameters
@@ -124,6 +126,8 @@ def model_checks(pm, meshes_lab: dict, skin: dict | None = None, bone_lengths: d
     meshes_lab : bone -> (trimesh.Trimesh, body), the bones in the static lab frame (`model.bone_meshes_lab`)
     skin : marker -> `personalize.skin.SkinThickness` measured in the MRI (`joints.pelvis_skin`), or None
     bone_lengths : side -> {segment: m} of the MRI bones (`bone_segment_lengths`), or None (no length test)
+    bony : the lab's own labels of markers on a bony landmark (the marker set's ``landmark`` entries), held to
+        `MARKER_SURFACE_MARGIN` like the internal landmark names
 
     Returns
     -------
@@ -172,7 +176,7 @@ def model_checks(pm, meshes_lab: dict, skin: dict | None = None, bone_lengths: d
             d = float(dist[0])
         else:
             d = float("inf")
-        limit = MARKER_SURFACE_MARGIN if mk.name in _BONY_MARKERS else OFF_BONE_MARKER_SURFACE_MARGIN
+        limit = MARKER_SURFACE_MARGIN if (mk.name in _BONY_MARKERS or mk.name in bony) else OFF_BONE_MARKER_SURFACE_MARGIN
         if skin and mk.name in skin:
             t = skin[mk.name]
             limit = max(limit, float(t.thickness) + SKIN_SD_FACTOR * float(t.sd) + DEFAULT_MARKER_RADIUS)
@@ -181,7 +185,7 @@ def model_checks(pm, meshes_lab: dict, skin: dict | None = None, bone_lengths: d
 
 
 def check_model(pm, meshes_lab: dict, source, skin: dict | None = None,
-                bone_lengths: dict | None = None) -> list[ModelCheck]:
+                bone_lengths: dict | None = None, bony: frozenset = frozenset()) -> list[ModelCheck]:
     """`model_checks`, refusing the model on the first failed test (the worst one: a joint or marker farthest
     out, else the segment length farthest off).
 
@@ -189,7 +193,7 @@ def check_model(pm, meshes_lab: dict, source, skin: dict | None = None,
     ------
     InputError : naming `source` (the subject folder), the joint, marker or segment and its distance (mm, %)
     """
-    checks = model_checks(pm, meshes_lab, skin, bone_lengths)
+    checks = model_checks(pm, meshes_lab, skin, bone_lengths, bony)
     failed = [c for c in checks if not c.passed]
     if failed:
         far = [c for c in failed if c.kind != "length"]

@@ -110,7 +110,9 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
                              lab=inputs.lab.to_json(), measurements=_measurements_json(inputs))
     summary.markers = markers.to_json()
     say("checking the model against the bones")
-    check_model(pm, meshes_lab, inputs.folder, skin, bone_segment_lengths(joints, inputs.sides))
+    ms = inputs.marker_set
+    bony = frozenset(k for k, v in ms.markers.items() if v.landmark) if ms is not None else frozenset()
+    check_model(pm, meshes_lab, inputs.folder, skin, bone_segment_lengths(joints, inputs.sides), bony)
     truth = truth_in_static_lab(inputs)
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)
