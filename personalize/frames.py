@@ -248,8 +248,9 @@ def _ankle_centre(tal, tib, fib, s):
         ta = tib.axes["ankle_axis"]
         ec.append(Estimate("tibial_plafond", on(ta.point, unit(ta.direction)), (0.001 ** 2) * np.eye(3),
                            ANKLE_MODEL_SD["tibial_plafond"][0] * rd))
-    if tib is not None and fib is not None and "medial_malleolus_tip" in tib.landmarks and "lateral_malleolus_tip" in fib.landmarks:
-        a, b = tib.landmarks["medial_malleolus_tip"], fib.landmarks["lateral_malleolus_tip"]
+    P = s.upper()
+    if tib is not None and fib is not None and f"{P}MMA" in tib.landmarks and f"{P}ANK" in fib.landmarks:
+        a, b = tib.landmarks[f"{P}MMA"], fib.landmarks[f"{P}ANK"]
         d = unit(b.position - a.position)
         ec.append(Estimate("malleoli", on(0.5 * (a.position + b.position), d), 0.25 * (a.cov + b.cov),
                            ANKLE_MODEL_SD["malleoli"][0] * rd, check=True))
@@ -445,7 +446,7 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 else:
                     yh = tib.axes["shaft_axis"].direction
                 yt = tal.frames["anatomical"]["rotation"][:, 1] if "anatomical" in tal.frames else yh
-                lm = tib.landmarks.get("plafond_centre") or tib.landmarks.get("medial_malleolus_tip")
+                lm = tib.landmarks.get("plafond_centre") or tib.landmarks.get(f"{s.upper()}MMA")
                 art, info = _articulation(ao, lm.position if lm is not None else None)
                 if info:
                     cross = dict(cross or {}, articulation=info)
