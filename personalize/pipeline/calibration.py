@@ -32,7 +32,8 @@ def constants() -> dict:
     for mod in (hip, knee, foot, motion):
         for name in mod.__all__:
             v = getattr(mod, name)
-            if name.isupper() and not name.endswith("_MARKERS") and isinstance(v, (int, float, dict, tuple, np.ndarray)):
+            names = isinstance(v, tuple) and all(isinstance(x, str) for x in v)      # a marker list, not a number
+            if name.isupper() and not name.endswith("_MARKERS") and not names and isinstance(v, (int, float, dict, tuple, np.ndarray)):
                 out[name] = np.asarray(v).tolist() if isinstance(v, (np.ndarray, tuple)) else v
     return out
 
