@@ -171,11 +171,12 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
     res.landmarks["LASI"] = Landmark(V[kl].copy(), isotropic_cov(sd_lm))
     if ks is not None:
         res.landmarks["SYMP"] = Landmark(V[ks].copy(), isotropic_cov(sd_lm))
-    if kpr is not None:
-        res.landmarks["RPSI"] = Landmark(V[kpr].copy(), isotropic_cov(np.hypot(noise, 0.003)))
-        res.landmarks["LPSI"] = Landmark(V[kpl].copy(), isotropic_cov(np.hypot(noise, 0.003)))
-    else:
-        res.flag(FLAG_LOW_CONFIDENCE, "PSIS not found; pelvic X from the anterior pelvic plane")
+    for name, k in (("RPSI", kpr), ("LPSI", kpl)):
+        if k is not None:
+            res.landmarks[name] = Landmark(V[k].copy(), isotropic_cov(np.hypot(noise, 0.003)))
+    if kpr is None or kpl is None:
+        missing = " and ".join(n for n, k in (("RPSI", kpr), ("LPSI", kpl)) if k is None)
+        res.flag(FLAG_LOW_CONFIDENCE, f"{missing} not found; pelvic X from the anterior pelvic plane")
     res.frames["isb"] = {"origin": o, "rotation": np.column_stack([X, Y, Z])}
     res.frames["anatomical"] = {"origin": mid, "rotation": np.column_stack([ant, sup, right])}
     return res
