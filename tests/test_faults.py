@@ -357,7 +357,7 @@ def test_5_run_failures_are_one_line_and_a_refusal_report(capsys, subj_copy, tmp
     static = subj_copy / "static.c3d"
     if fault == "lasi_never_visible":
         _rewrite_static(static, lambda tr, pos: pos.__setitem__((slice(None), tr.names.index("LASI")), np.nan))
-        blame, msg = static, "pelvis marker(s) LASI never visible"
+        blame, msg = static, "marker(s) LASI never visible"
     elif fault == "all_nan_static":
         keep = 0
 
@@ -365,7 +365,7 @@ def test_5_run_failures_are_one_line_and_a_refusal_report(capsys, subj_copy, tmp
             pos[:] = np.nan
             pos[:, keep] = 0.1           # one marker left so that the file still has a trajectory
         _rewrite_static(static, edit)
-        blame, msg = static, "never visible"
+        blame, msg = static, "no frame has both pelvis and foot markers"     # the lab cannot be read from it
     elif fault == "corrupt_truth":
         (subj_copy / "truth.json").write_text('{"joints": {"joints": ')
         blame, msg = subj_copy / "truth.json", "not readable JSON"

@@ -10,7 +10,8 @@ def test_marker_names_map_to_their_site():
     assert tissue_site("RASI") == "ASI" and tissue_site("LPSI") == "PSI" and tissue_site("LKNEM") == "KNEM"
     assert tissue_site("ASIS") == "ASI"
     assert tissue_prior("RASI").mean == SOFT_TISSUE_THICKNESS["ASI"].mean
-    assert tissue_prior("SACR") == DEFAULT_TISSUE      # not tabulated: the stated default
+    assert tissue_prior("SACR") == SOFT_TISSUE_THICKNESS["PSI"]     # between the PSIS, over the same tissue
+    assert tissue_prior("RTHI") == DEFAULT_TISSUE      # not tabulated: the stated default
 
 
 def test_draws_have_the_table_mean_and_sd_and_stay_positive():

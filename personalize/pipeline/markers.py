@@ -64,8 +64,13 @@ def subject_marker_set(folder: Path, static: MarkerTrial, spec=None) -> tuple[Ma
     else:
         m = detect_marker_set(static)
         if not m.fits:
-            raise InputError(src, f"the marker labels fit no known marker set: the nearest, {m.marker_set.name!r}, "
-                                  f"lacks {_listed(m.missing)}; describe the lab's set in {path} "
+            labels = {n.split(":")[-1] for n in static.names}
+            absent = [n for n in m.missing if n not in labels]
+            unseen = [n for n in m.missing if n in labels]
+            what = "; ".join(x for x in (f"lacks {_listed(absent)}" if absent else "",
+                                         f"marker(s) {_listed(unseen)} never visible" if unseen else "") if x)
+            raise InputError(src, f"the marker labels fit no known marker set: the nearest, {m.marker_set.name!r}: "
+                                  f"{what}; describe the lab's set in {path} "
                                   "(label -> segment, landmark) or pass --marker-set FILE|PRESET")
         return m.marker_set, m.sides, f"preset {m.marker_set.name!r}, detected from the labels of {Path(src).name}"
     bad = sorted({v.segment for v in ms.markers.values() if v.segment not in MODEL_BODIES + SPECIAL_SEGMENTS})
