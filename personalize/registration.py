@@ -302,18 +302,28 @@ LM_XTOL = 1e-13
 LM_XTOL_RTOL = 1e-10
 
 
-def _linearise(Q, M, Cq, Cm, R, t, c):
-    """Residuals, noise, Jacobian, information and gradient at (R, t): r, Σ, J, H = JᵀWJ, g = JᵀWr, χ²."""
+def _pose_terms(Q, M, Cq, Cm, R, t, c, n: int = 6):
+    """r = M - (R Q + t), Σ = R C_q Rᵀ + C_m, W = Σ⁻¹ and the (K, 3, n) Jacobian with its pose columns
+    [-[y - c]×, I] filled (columns 6.. left for extra parameters)."""
     S = np.einsum("ij,kjl,ml->kim", R, Cq, R) + Cm
     W = np.linalg.inv(S)
     y = Q @ R.T + t
-    r = M - y
-    J = np.zeros((len(Q), 3, 6))
+    J = np.zeros((len(Q), 3, n))
     J[:, :, :3] = -skew(y - c)
-    J[:, :, 3:] = np.eye(3)
-    H = np.einsum("kai,kab,kbj->ij", J, W, J)
-    g = np.einsum("kai,kab,kb->i", J, W, r)
-    chi2 = float(np.einsum("ka,kab,kb->", r, W, r))
+    J[:, :, 3:6] = np.eye(3)
+    return M - y, S, W, J
+
+
+def _information(J, W, r):
+    """H = JᵀWJ, g = JᵀWr, χ² = rᵀWr summed over the points."""
+    return (np.einsum("kai,kab,kbj->ij", J, W, J), np.einsum("kai,kab,kb->i", J, W, r),
+            float(np.einsum("ka,kab,kb->", r, W, r)))
+
+
+def _linearise(Q, M, Cq, Cm, R, t, c):
+    """Residuals, noise, Jacobian, information and gradient at (R, t): r, Σ, J, H = JᵀWJ, g = JᵀWr, χ²."""
+    r, S, W, J = _pose_terms(Q, M, Cq, Cm, R, t, c)
+    H, g, chi2 = _information(J, W, r)
     return r, S, J, H, g, chi2
 
 
@@ -428,21 +438,12 @@ class _Tissue:
 
 def _linearise_tissue(tis: _Tissue, M, Cm, R, t, u, c):
     """`_linearise` of the 7 parameters (ω, δ, u = ln k) with the prior on u as one more residual."""
-    Q, Cq = tis.points(u), tis.covs(u)
-    S = np.einsum("ij,kjl,ml->kim", R, Cq, R) + Cm
-    W = np.linalg.inv(S)
-    y = Q @ R.T + t
-    r = M - y
-    J = np.zeros((len(Q), 3, 7))
-    J[:, :, :3] = -skew(y - c)
-    J[:, :, 3:6] = np.eye(3)
+    r, S, W, J = _pose_terms(tis.points(u), M, tis.covs(u), Cm, R, t, c, n=7)
     J[:, :, 6] = (np.exp(u) * tis.mu)[:, None] * (tis.N @ R.T)
-    H = np.einsum("kai,kab,kbj->ij", J, W, J)
-    g = np.einsum("kai,kab,kb->i", J, W, r)
+    H, g, chi2 = _information(J, W, r)
     H[6, 6] += 1.0 / tis.su ** 2
     g[6] += (tis.u0 - u) / tis.su ** 2
-    chi2 = float(np.einsum("ka,kab,kb->", r, W, r)) + ((u - tis.u0) / tis.su) ** 2
-    return r, S, J, H, g, chi2
+    return r, S, J, H, g, chi2 + ((u - tis.u0) / tis.su) ** 2
 
 
 def _fit_tissue(tis: _Tissue, M, Cm, *, max_iter: int = 100):
