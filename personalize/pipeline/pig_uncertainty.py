@@ -92,18 +92,19 @@ def pig_uncertainty(trial: MarkerTrial, subject) -> PigUncertainty:
 
 
 def _of(ctx) -> PigUncertainty | None:
+    """The propagation for ``ctx.pig``, computed once per reconstruction (the last one is kept, with a reference
+    to it, so that another subject's reconstruction can never be taken for it)."""
     if ctx.pig is None:
         return None
-    key = id(ctx.pig)
-    if key not in _CACHE:
+    if _CACHE.get("pig") is not ctx.pig:
         view = getattr(ctx, "view", None)
         trial = next((t for t in (ctx.inputs.static, getattr(view, "static", None))
                       if t is not None and has_pig_markers(t)), None)
         if trial is None:
             return None
-        _CACHE.clear()                                                      # one subject at a time
-        _CACHE[key] = pig_uncertainty(trial, ctx.inputs.subject)
-    return _CACHE[key]
+        _CACHE.clear()
+        _CACHE.update(pig=ctx.pig, value=pig_uncertainty(trial, ctx.inputs.subject))
+    return _CACHE["value"]
 
 
 def pig_centre_propagated(ctx, joint: str, side: str) -> Gaussian:
