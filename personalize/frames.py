@@ -229,6 +229,11 @@ HEAD_MODEL_SD = 0.02
 #: the malleoli's midpoint and line are a coarse check (the bimalleolar line runs ~20 deg from the
 #: talocrural axis) and the tibial plateau's medio-lateral line (tibial torsion, normally 15-40 deg
 #: external) are checks only: they vote on agreement, not in the combined value
+#: deg, largest angle between a talar dome axis and the bimalleolar line for the dome to be the talocrural axis:
+#: the detected dome axis and the malleolus tips' line differ by 22-25 deg on the real bone sets (ICL_MRI and
+#: LHDL_CT right, TLEM2_MRI both sides, an LHDL_CT label volume's right side); that label volume's left dome was
+#: 78 deg off (80 deg from the expert's axis)
+ANKLE_AXIS_MALLEOLAR_MAX_DEG = 40.0
 ANKLE_MODEL_SD = {"talar_dome": (0.04, 1.0), "tibial_plafond": (0.2, None), "malleoli": (0.4, 12.0),
                   "tibial_torsion": (None, 20.0)}
 
@@ -248,14 +253,20 @@ def _ankle_centre(tal, tib, fib, s):
         ta = tib.axes["ankle_axis"]
         ec.append(Estimate("tibial_plafond", on(ta.point, unit(ta.direction)), (0.001 ** 2) * np.eye(3),
                            ANKLE_MODEL_SD["tibial_plafond"][0] * rd))
-    P = s.upper()
-    if tib is not None and fib is not None and f"{P}MMA" in tib.landmarks and f"{P}ANK" in fib.landmarks:
-        a, b = tib.landmarks[f"{P}MMA"], fib.landmarks[f"{P}ANK"]
+    if tib is not None and fib is not None and "medial_malleolus_tip" in tib.landmarks and "lateral_malleolus_tip" in fib.landmarks:
+        a, b = tib.landmarks["medial_malleolus_tip"], fib.landmarks["lateral_malleolus_tip"]
         d = unit(b.position - a.position)
         ec.append(Estimate("malleoli", on(0.5 * (a.position + b.position), d), 0.25 * (a.cov + b.cov),
                            ANKLE_MODEL_SD["malleoli"][0] * rd, check=True))
         eu.append(Estimate("malleoli", d, np.radians(2.0) ** 2 * np.eye(3), np.radians(ANKLE_MODEL_SD["malleoli"][1]),
                            check=True))
+    if len(eu) > 1 and eu[1].source == "malleoli" and \
+            np.degrees(np.arccos(min(1.0, abs(float(u @ eu[1].value))))) > ANKLE_AXIS_MALLEOLAR_MAX_DEG:
+        # a talar dome axis this far from the bimalleolar line is no talocrural axis (a dome fitted on a ridge
+        # of a noisy label surface): the malleoli's line is the estimate, the dome a check against it
+        m = eu[1]
+        eu = [Estimate("malleoli", m.value, m.cov, m.model_sd), Estimate("talar_dome", u, eu[0].cov, eu[0].model_sd,
+                                                                          check=True)]
     if tib is not None and "knee_axis" in tib.axes:
         ka = tib.axes["knee_axis"]
         eu.append(Estimate("tibial_torsion", ka.direction, np.radians(ka.sd_deg) ** 2 * np.eye(3),
@@ -446,7 +457,7 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 else:
                     yh = tib.axes["shaft_axis"].direction
                 yt = tal.frames["anatomical"]["rotation"][:, 1] if "anatomical" in tal.frames else yh
-                lm = tib.landmarks.get("plafond_centre") or tib.landmarks.get(f"{s.upper()}MMA")
+                lm = tib.landmarks.get("plafond_centre") or tib.landmarks.get("medial_malleolus_tip")
                 art, info = _articulation(ao, lm.position if lm is not None else None)
                 if info:
                     cross = dict(cross or {}, articulation=info)

@@ -147,7 +147,8 @@ class Correspondences:
 
 def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marker_names, static: Mapping[str, Gaussian],
                            *, surfaces: dict | None = None, normals: dict | None = None, skin_thickness=None,
-                           skin_sd=None, marker_radius: float = DEFAULT_MARKER_RADIUS, axis=None) -> Correspondences:
+                           skin_sd=None, marker_radius: float = DEFAULT_MARKER_RADIUS, axis=None,
+                           sites: Mapping[str, str] | None = None) -> Correspondences:
     """The landmarks of `bone_names` named like a marker of `marker_names` that `static` shows (in that order).
 
     Each landmark p is paired with its marker, offset along the outward normal
@@ -162,6 +163,10 @@ def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marke
     ankle markers on the flexion / transmalleolar axis at the epicondyle /
     malleolus, not on the prominence itself.  Landmarks away from the axis (the
     greater trochanter, tibial tuberosity, fibular head) are used as they are.
+    Without `axis` every landmark is the palpated site itself (IOR, CAST:
+    markers on the prominences).  ``sites``: marker -> the landmark to pair it
+    with when not the one named like it (the malleolus tips for markers put on
+    the transmalleolar axis).
 
     Parameters
     ----------
@@ -169,10 +174,11 @@ def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marke
     static : marker -> lab centre (`static_marker_positions`)
     """
     found = {}
+    site = {(sites or {}).get(n, n): n for n in marker_names}
     for b in bone_names:
         for n, lm in (bones[b].landmarks.items() if b in bones else ()):
-            if n in marker_names:
-                found[n] = (b, lm)
+            if n in site:
+                found[site[n]] = (b, lm)
     pair = [n for n in marker_names if n in found and n in static]
     P = np.array([found[n][1].position for n in pair], float).reshape(-1, 3)
     out = Correspondences()

@@ -246,7 +246,7 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     Rs = rotation_from_axes(y=u_s, z=Z)
     G = Q + np.array([-0.008, 0.006, 0.020]) * s
     g_r = np.array([0.016, 0.022, 0.012]) * s
-    RTRO = G + g_r[1] * Y
+    RTRO = G + g_r[2] * Z                               # lateral prominence of the trochanter (the TRO marker site)
     r_e = 0.010 * s
     RKNE = Cl + np.array([-0.003, 0.009, 0.0215]) * s
     RMFC = Cm + np.array([-0.002, 0.011, -0.0235]) * s

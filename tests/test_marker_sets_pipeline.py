@@ -49,6 +49,35 @@ def test_refusal_names_the_static_file_and_the_missing_markers(tmp_path):
         subject_marker_set(tmp_path, _trial(labels, source=str(tmp_path / "static.c3d")), "ior")
 
 
+def test_placement_of_a_set_and_the_registration_it_implies(tmp_path):
+    from kinematics.io.marker_sets import read_marker_set
+    from personalize.landmarks import BoneLandmarks, Landmark
+    from personalize.marker_registration import marker_correspondences
+
+    assert preset("pig").on_joint_axes and preset("pig-sacr").on_joint_axes and not preset("ior").on_joint_axes
+    f = tmp_path / "markers.json"
+    write_marker_set(f, MarkerSet("lab", {"LM": MarkerDef("tibia_r", "RANK")}))
+    assert read_marker_set(f).placement == "palpated"                      # a lab's own set: palpated sites
+    f.write_text(json.dumps({"name": "lab", "placement": "joint-axis", "markers": {"LM": {"segment": "tibia_r"}}}))
+    assert read_marker_set(f).on_joint_axes
+    f.write_text(json.dumps({"name": "lab", "placement": "axis", "markers": {"LM": {"segment": "tibia_r"}}}))
+    with pytest.raises(InputError, match=r"markers.json.*placement"):
+        read_marker_set(f)
+    # on the axis a malleolus 15 mm off it is projected onto it; palpated it is used where it is; `sites`
+    # pairs the marker with another landmark (the tip)
+    cov = 1e-6 * np.eye(3)
+    tib = BoneLandmarks(bone="tibia_r", side="r", landmarks={"RANK": Landmark(np.array([0.0, 0.015, 0.03]), cov),
+                                                            "lateral_malleolus_tip": Landmark(np.array([0.0, -0.01, 0.025]), cov)})
+    static = {"RANK": Gaussian(np.array([0.0, 0.015, 0.05]), cov)}
+    axis = (np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    on = marker_correspondences({"tibia_r": tib}, ["tibia_r"], ("RANK",), static, axis=axis)
+    pal = marker_correspondences({"tibia_r": tib}, ["tibia_r"], ("RANK",), static)
+    tip = marker_correspondences({"tibia_r": tib}, ["tibia_r"], ("RANK",), static, axis=axis,
+                                 sites={"RANK": "lateral_malleolus_tip"})
+    assert np.allclose(on.mri[0][:2], 0.0) and np.allclose(pal.mri[0], [0.0, 0.015, 0.03])
+    assert np.allclose(tip.mri[0], [0.0, 0.0, 0.025])
+
+
 def test_markers_json_renames_onto_internal_names(tmp_path):
     """A lab's own labels described in markers.json: the set wins over detection, landmarks give internal names."""
     from personalize.pipeline.inputs import check_same_subject
@@ -196,7 +225,8 @@ def own_labels_run(tmp_path_factory):
             if seg is not None:
                 markers[f"{s}_{own}"] = MarkerDef(seg if seg == "pelvis" else f"{seg}_{side}", lm and s + lm)
     markers["C7"] = MarkerDef("torso")
-    write_marker_set(subj / "markers.json", MarkerSet("lab", markers))
+    # the analytic phantom puts the knee and ankle markers on the joint axes (Plug-in-Gait's placement)
+    write_marker_set(subj / "markers.json", MarkerSet("lab", markers, "joint-axis"))
     out = root / "out"
     return subj, out, run_subject(subj, out, report=False)
 

@@ -14,7 +14,13 @@ One description serves the phantoms (which place the markers) and the pipeline
 names ``landmarks.json`` uses (``RASI``, ``RPSI``, ``RTRO``, ``RKNE``, ``RMFC``,
 ``RTTB``, ``RHFB``, ``RANK``, ``RMMA``, ``RHEE``, ``RD1M``, ``RD5M``, ...).
 Optional per marker: ``"static_only": true`` for anatomical calibration markers
-that are removed after the static trial (CAST).
+that are removed after the static trial (CAST).  Optional per set:
+``"placement"``, how the knee and ankle markers were put on: ``"palpated"``
+(the default for a file: on the bony prominence itself, the epicondyle's or
+malleolus's most lateral / medial point, as the IOR and CAST protocols
+palpate them) or ``"joint-axis"`` (Plug-in-Gait's protocol, the presets
+``pig`` and ``pig-sacr``: the knee and ankle markers on the flexion and
+transmalleolar axes, Vicon Plug-in-Gait reference guide).
 
 Presets (`PRESETS`, `preset`):
 
@@ -56,8 +62,10 @@ from lowerlimb.errors import InputError
 
 __all__ = ["MarkerDef", "MarkerSet", "PRESETS", "preset", "resolve_marker_set", "read_marker_set",
            "write_marker_set", "SPECIAL_SEGMENTS", "SetMatch", "match_marker_set", "detect_marker_set",
-           "canonical_names", "canonical_trial", "LEGACY_LANDMARKS"]
+           "canonical_names", "canonical_trial", "LEGACY_LANDMARKS", "PLACEMENTS"]
 
+#: how knee and ankle markers are put on (module docstring)
+PLACEMENTS = ("palpated", "joint-axis")
 #: segments that are not bodies of a lower-limb model
 SPECIAL_SEGMENTS = ("torso", "ignore")
 
@@ -85,6 +93,8 @@ class MarkerSet:
 
     name: str
     markers: dict = field(default_factory=dict)
+    #: "palpated" or "joint-axis" (module docstring)
+    placement: str = "palpated"
 
     @property
     def labels(self) -> tuple[str, ...]:
@@ -105,10 +115,16 @@ class MarkerSet:
 
     def subset(self, labels) -> "MarkerSet":
         keep = set(labels)
-        return MarkerSet(self.name, {k: v for k, v in self.markers.items() if k in keep})
+        return MarkerSet(self.name, {k: v for k, v in self.markers.items() if k in keep}, self.placement)
+
+    @property
+    def on_joint_axes(self) -> bool:
+        """True when the knee and ankle markers sit on the joint axes (Plug-in-Gait's placement)."""
+        return self.placement == "joint-axis"
 
     def to_json(self) -> dict:
-        return {"name": self.name, "markers": {k: v.to_json() for k, v in self.markers.items()}}
+        return {"name": self.name, "placement": self.placement,
+                "markers": {k: v.to_json() for k, v in self.markers.items()}}
 
 
 # --------------------------------------------------------------------------- presets
@@ -127,7 +143,7 @@ def _pig() -> MarkerSet:
             ("{S}THI", "femur", None, False), ("{S}KNE", "femur", "KNE", False),
             ("{S}TIB", "tibia", None, False), ("{S}ANK", "tibia", "ANK", False),
             ("{S}HEE", "calcn", "HEE", False), ("{S}TOE", "calcn", None, False)]
-    return MarkerSet("pig", _sided(rows))
+    return MarkerSet("pig", _sided(rows), "joint-axis")
 
 
 def _pig_sacr() -> MarkerSet:
@@ -135,7 +151,7 @@ def _pig_sacr() -> MarkerSet:
     pig = _pig().markers
     m = {k: v for k, v in pig.items() if not k.endswith("PSI")}
     m = {"SACR": MarkerDef("pelvis"), **m}
-    return MarkerSet("pig-sacr", m)
+    return MarkerSet("pig-sacr", m, "joint-axis")
 
 
 def _ior() -> MarkerSet:
@@ -212,6 +228,9 @@ def read_marker_set(path: str | os.PathLike) -> MarkerSet:
         raise InputError(p, f"not valid JSON ({exc})") from None
     if not isinstance(d, dict) or not isinstance(d.get("markers"), dict) or not d["markers"]:
         raise InputError(p, 'expected {"name": ..., "markers": {LABEL: {"segment": ...}, ...}} with at least one marker')
+    placement = d.get("placement", "palpated")
+    if placement not in PLACEMENTS:
+        raise InputError(p, f"\"placement\" must be one of {', '.join(PLACEMENTS)}, not {placement!r}")
     out = {}
     for label, v in d["markers"].items():
         if isinstance(v, str):
@@ -225,7 +244,7 @@ def read_marker_set(path: str | os.PathLike) -> MarkerSet:
         if lm is not None and not isinstance(lm, str):
             raise InputError(p, f"marker {label!r}: \"landmark\" must be a landmark name")
         out[str(label)] = MarkerDef(v["segment"].strip(), lm or None, bool(v.get("static_only", False)))
-    return MarkerSet(str(d.get("name") or p.stem), out)
+    return MarkerSet(str(d.get("name") or p.stem), out, placement)
 
 
 def write_marker_set(path: str | os.PathLike, ms: MarkerSet) -> Path:

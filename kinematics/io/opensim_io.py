@@ -447,8 +447,9 @@ def to_opensim(model: Model):
             c = cdef[n]
             oc = oj.upd_coordinates(k)
             oc.setName(n)
-            oc.setDefaultValue(c.default)
             lo, hi = c.range
+            # OpenSim refuses a default outside the range (a standing knee hyperextended past gait2392's -10 deg)
+            oc.setDefaultValue(float(np.clip(c.default, lo, hi)))
             oc.setRangeMin(float(lo) if np.isfinite(lo) else -1e3)
             oc.setRangeMax(float(hi) if np.isfinite(hi) else 1e3)
             oc.setDefaultLocked(bool(c.locked))

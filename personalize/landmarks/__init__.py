@@ -231,12 +231,11 @@ def _tibia_isb(ls: LandmarkSet, s: str) -> None:
     the right-hand malleolus (made orthogonal to Y), X = Y x Z.
     """
     tib, fib, fem = ls.bones.get(f"tibia_{s}"), ls.bones.get(f"fibula_{s}"), ls.bones.get(f"femur_{s}")
-    P = "R" if s == "r" else "L"
-    if tib is None or fib is None or f"{P}MMA" not in tib.landmarks or f"{P}ANK" not in fib.landmarks:
+    if tib is None or fib is None or "medial_malleolus_tip" not in tib.landmarks or "lateral_malleolus_tip" not in fib.landmarks:
         return
     from personalize.frames import frame_yz
 
-    mma, ank = tib.landmarks[f"{P}MMA"].position, fib.landmarks[f"{P}ANK"].position
+    mma, ank = tib.landmarks["medial_malleolus_tip"].position, fib.landmarks["lateral_malleolus_tip"].position
     mal = 0.5 * (mma + ank)
     if fem is not None and "intercondylar_midpoint" in fem.landmarks:
         knee = fem.landmarks["intercondylar_midpoint"].position

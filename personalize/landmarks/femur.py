@@ -192,18 +192,27 @@ def detect_femur(surface: Surface, name: str = "femur_r") -> BoneLandmarks:
     if head is not None:
         _neck(surface, res, head, sp, sd, prox_region)
 
-    # ---- greater trochanter tip: most proximal point lateral of the shaft axis -----
+    # ---- greater trochanter: the lateral prominence the TRO marker is palpated on -----
+    # (CAST, Cappozzo et al. 1995; IOR, Leardini et al. 2007: "most lateral
+    # prominence of the greater trochanter"), not its proximal tip, which lies
+    # 30-40 mm higher and more posterior on real femurs.  "Lateral" is the
+    # epicondylar direction made perpendicular to the mechanical axis (the
+    # femur's vertical and frontal-plane lateral in standing).
     if has_prox:
         lat_mask = prox_region & (((V - sp) @ lat) > 0.5 * lb.shaft_radius)
+        up = sd
+        if head is not None and "intercondylar_midpoint" in res.landmarks:
+            up = unit(np.asarray(head.centre) - res.landmarks["intercondylar_midpoint"].position)
+        lateral = lat
+        if f"{P}KNE" in res.landmarks and f"{P}MFC" in res.landmarks:
+            lateral = unit(res.landmarks[f"{P}KNE"].position - res.landmarks[f"{P}MFC"].position)
+        lateral = unit(perpendicular(lateral, up))
         if head is not None:
-            lat_mask &= np.linalg.norm(V - head.centre, axis=1) > 1.3 * head.radius
+            r = float(head.radius)
+            d = (V - np.asarray(head.centre)) @ up
+            lat_mask &= (np.linalg.norm(V - head.centre, axis=1) > 1.3 * r) & (d > -4.5 * r) & (d < 2.0 * r)
         if lat_mask.any():
-            # "most proximal" along the mechanical axis (knee centre -> head
-            # centre), the femur's vertical in standing, else the shaft axis
-            up = sd
-            if head is not None and "intercondylar_midpoint" in res.landmarks:
-                up = unit(np.asarray(head.centre) - res.landmarks["intercondylar_midpoint"].position)
-            k = extreme_vertex(surface, up, lat_mask, smooth=0.001)
+            k = extreme_vertex(surface, lateral, lat_mask, smooth=0.002)
             res.landmarks[f"{P}TRO"] = Landmark(V[k].copy(), isotropic_cov(noise, 0.002))
 
     # ---- frame (ISB, Wu et al. 2002) ---------------------------------------------------

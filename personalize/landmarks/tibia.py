@@ -225,14 +225,17 @@ def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None
             k = extreme_vertex(tib, ant, slab, smooth=0.002)
             res.landmarks[f"{P}TTB"] = Landmark(V[k].copy(), isotropic_cov(0.002))
     if has_dist:
-        # medial malleolus: distal tip of the medial side of the pilon
+        # medial malleolus: its distal tip (ISB's MM, for the frames and axes) and its most medial point, where a
+        # medial malleolus marker is palpated (the IOR / Plug-in-Gait site, STAPLE's RMMA)
         med_blk = (hp < bot + 0.05) & (((V - sp) @ med) > 0)
         k = extreme_vertex(tib, -sd, med_blk, smooth=0.001)
+        res.landmarks["medial_malleolus_tip"] = Landmark(V[k].copy(), isotropic_cov(0.002))
+        k = extreme_vertex(tib, med, med_blk, smooth=0.001)
         res.landmarks[f"{P}MMA"] = Landmark(V[k].copy(), isotropic_cov(0.002))
         _plafond(tib, res, hp, bot, sd, right, ant)
     # ISB-like frame: Y from the malleolar midpoint (or plafond) to the plateau centre
-    if "plateau_centre" in res.landmarks and f"{P}MMA" in res.landmarks:
-        lo_pt = res.landmarks.get("plafond_centre", res.landmarks[f"{P}MMA"]).position
+    if "plateau_centre" in res.landmarks and "medial_malleolus_tip" in res.landmarks:
+        lo_pt = res.landmarks.get("plafond_centre", res.landmarks["medial_malleolus_tip"]).position
         Y = unit(res.landmarks["plateau_centre"].position - lo_pt)
         Z = unit(perpendicular(right, Y))
         X = np.cross(Y, Z)
@@ -380,8 +383,22 @@ def detect_fibula(surface: Surface, name: str = "fibula_r", tibia: BoneLandmarks
     else:
         k = extreme_vertex(fib, prox, smooth=0.002)
     res.landmarks[f"{P}HFB"] = Landmark(V[k].copy(), isotropic_cov(0.002))
-    # lateral malleolus: its distal tip
+    # lateral malleolus: its distal tip (ISB's LM, for the frames and axes) and its most lateral point along the
+    # transmalleolar direction over the distal 4 cm, where the ankle marker is palpated (Plug-in-Gait ANK, IOR LM;
+    # STAPLE's RANK, 20 mm above its tip RLM on ICL_MRI)
     k = extreme_vertex(fib, -prox, smooth=0.001)
-    res.landmarks[f"{P}ANK"] = Landmark(V[k].copy(), isotropic_cov(0.002))
+    tip = V[k].copy()
+    res.landmarks["lateral_malleolus_tip"] = Landmark(tip, isotropic_cov(0.002))
+    a = None
+    if tibia is not None and "medial_malleolus_tip" in tibia.landmarks:
+        a = tip - tibia.landmarks["medial_malleolus_tip"].position
+        a = a - (a @ prox) * prox
+    elif right is not None:
+        a = right if side == "r" else -right
+    if a is not None and np.linalg.norm(a) > 1e-6:
+        k = extreme_vertex(fib, a / np.linalg.norm(a), h < h.min() + 0.04, smooth=0.001)
+        res.landmarks[f"{P}ANK"] = Landmark(V[k].copy(), isotropic_cov(0.002))
+    else:
+        res.landmarks[f"{P}ANK"] = Landmark(tip, isotropic_cov(0.002))
     res.axes["shaft_axis"] = Axis(point=c, direction=prox, sd_deg=2.0)
     return res

@@ -61,8 +61,11 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
             f"sd {KNEE_STANDING_ROTATION_SD_DEG:g} deg; pipeline.virtual_markers)")
     reg = register_with_centre(f"tibia_{s}", ctx.bones, [f"tibia_{s}", f"fibula_{s}"],
                                (f"{S}ANK", f"{S}MMA", f"{S}TTB", f"{S}HFB"), ctx.static, ctx.meshes, j_knee.centre,
-                               knee.gaussian.scaled(1.0 / knee_scale), axis=(j_ankle.origin, j_ankle.axis),
-                               fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)], extra=extra)
+                               knee.gaussian.scaled(1.0 / knee_scale), axis=ctx.joint_axis(j_ankle),
+                               fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)], extra=extra,
+                               # on the transmalleolar axis (Plug-in-Gait) the tips' projections, not the prominences
+                               sites={f"{S}ANK": "lateral_malleolus_tip", f"{S}MMA": "medial_malleolus_tip"}
+                               if ctx.markers_on_joint_axes else None)
     scale = centre_scale(ctx, MRI_ANKLE_CENTRE_COV_SCALE, MRI_ANKLE_CENTRE_COV_SCALE_MEASURED)
     mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_ANKLE_MODEL_SD))
     u, sd, _ = reg.transfer_direction(j_ankle.axis, j_ankle.axis_sd_deg)

@@ -103,3 +103,15 @@ class JointContext:
     tissue_measured: bool
     say: object
     view: object = None
+
+    @property
+    def markers_on_joint_axes(self) -> bool:
+        """The knee and ankle markers sit on the joint axes (Plug-in-Gait's placement) rather than on the palpated
+        prominences (`kinematics.io.marker_sets`, ``placement``); a trial without a marker set is Plug-in-Gait."""
+        ms = getattr(self.view, "marker_set", None)
+        return ms is None or ms.on_joint_axes
+
+    def joint_axis(self, joint) -> tuple | None:
+        """``(origin, axis)`` of `joint` (`personalize.frames.Joint`) for the registration's on-axis projection, or
+        None when the markers are on the prominences."""
+        return (joint.origin, joint.axis) if self.markers_on_joint_axes else None

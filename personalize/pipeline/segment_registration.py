@@ -21,11 +21,11 @@ __all__ = ["register_with_centre", "toe_landmark"]
 
 def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static: dict, meshes: dict,
                          centre_mri: Gaussian | None, centre_lab: Gaussian | None, axis=None, virtual=None,
-                         fallback=(), extra=()) -> Registration:
+                         fallback=(), extra=(), sites=None) -> Registration:
     """Register one segment from its markers plus one joint centre known in both frames.
 
     ``axis = (point, direction)`` (scanner frame): the landmarks are projected on
-    that joint axis first (`marker_correspondences`).  ``virtual``: {marker name:
+    that joint axis first (`marker_correspondences`, which also takes `sites`).  ``virtual``: {marker name:
     (scanner point, outward normal)} for markers over a point that is not itself a
     landmark (TOE over the mid-point of the first and fifth metatarsal heads).
     ``fallback``: extra (name, mri `Gaussian`, lab `Gaussian`) pairs used only when
@@ -34,7 +34,7 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
     and the MRI estimates of that segment are then not independent of the motion ones).  ``extra``: (name,
     mri `Gaussian`, lab `Gaussian`) pairs always used (`virtual_markers.knee_axis_pairs`).
     """
-    corr = marker_correspondences(bones, bone_names, marker_names, static, surfaces=meshes, axis=axis)
+    corr = marker_correspondences(bones, bone_names, marker_names, static, surfaces=meshes, axis=axis, sites=sites)
     for n, (p, nrm) in (virtual or {}).items():
         if n in static:
             corr.add_marker(n, Gaussian(p, np.zeros((3, 3))), static[n], nrm)
