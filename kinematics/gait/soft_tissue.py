@@ -74,6 +74,8 @@ _MANTOVANI = "Mantovani, Ng & Lamontagne 2016, Gait Posture 44:48 (CT, n=67)"
 SOFT_TISSUE_THICKNESS: dict[str, TissuePrior] = {
     "ASI": TissuePrior(0.0097, 0.0070, _MANTOVANI),
     "PSI": TissuePrior(0.0196, 0.0109, _MANTOVANI),
+    # lateral of the greater trochanter (DXA, older men, n = 222; women thicker): Nielson et al. 2009
+    "TRO": TissuePrior(0.0310, 0.0115, "Nielson, Bouxsein et al. 2009, J Clin Endocrinol Metab 94:491"),
     "KNE": TissuePrior(0.005, 0.003, "assumed"),
     "KNEM": TissuePrior(0.005, 0.003, "assumed"),
     "MFC": TissuePrior(0.005, 0.003, "assumed"),

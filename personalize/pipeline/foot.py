@@ -11,6 +11,8 @@ Plug-in-Gait ankle centre (else the malleolus-marker midpoint,
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from lowerlimb.errors import FitError, InputError
@@ -61,11 +63,11 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
             f"sd {KNEE_STANDING_ROTATION_SD_DEG:g} deg; pipeline.virtual_markers)")
     reg = register_with_centre(f"tibia_{s}", ctx.bones, [f"tibia_{s}", f"fibula_{s}"],
                                (f"{S}ANK", f"{S}MMA", f"{S}TTB", f"{S}HFB"), ctx.static, ctx.meshes, j_knee.centre,
-                               knee.gaussian.scaled(1.0 / knee_scale), axis=ctx.joint_axis(j_ankle),
+                               knee.gaussian.scaled(float(os.environ.get("ANCHOR_F", "1")) / knee_scale), axis=ctx.joint_axis(j_ankle),
                                fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)], extra=extra,
                                # on the transmalleolar axis (Plug-in-Gait) the tips' projections, not the prominences
                                sites={f"{S}ANK": "lateral_malleolus_tip", f"{S}MMA": "medial_malleolus_tip"}
-                               if ctx.markers_on_joint_axes else None)
+                               if ctx.markers_on_joint_axes else None, tissue_scale=ctx.tissue_scale(est))
     scale = centre_scale(ctx, MRI_ANKLE_CENTRE_COV_SCALE, MRI_ANKLE_CENTRE_COV_SCALE_MEASURED)
     mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_ANKLE_MODEL_SD))
     u, sd, _ = reg.transfer_direction(j_ankle.axis, j_ankle.axis_sd_deg)
@@ -116,7 +118,7 @@ def estimate_foot_axes(ctx: JointContext, s: str, ankle: Fused, ankle_scale: flo
         reg = register_with_centre(f"calcn_{s}", ctx.bones, [f"calcn_{s}", f"talus_{s}", f"toes_{s}"],
                                    (f"{S}HEE", f"{S}D1M", f"{S}D5M"), ctx.static, ctx.meshes,
                                    ctx.joints[f"ankle_{s}"].centre, ankle.gaussian.scaled(1.0 / ankle_scale),
-                                   virtual=toe_landmark(ctx.bones.get(f"calcn_{s}"), S))
+                                   virtual=toe_landmark(ctx.bones.get(f"calcn_{s}"), S), tissue_scale=ctx.tissue_scale(est))
     except (InputError, FitError) as exc:
         reg = reg_shank
         est.notes.append(f"foot {S}: registered with the shank ({exc})")

@@ -111,6 +111,12 @@ class JointContext:
         ms = getattr(self.view, "marker_set", None)
         return ms is None or ms.on_joint_axes
 
+    def tissue_scale(self, est) -> tuple | None:
+        """(k, sd of ln k) of the soft tissue estimated with the pelvis registration, or None."""
+        reg = est.registrations.get("pelvis")
+        k = getattr(reg, "tissue_scale", None)
+        return None if k is None else (float(k), float(reg.tissue_scale_log_sd))
+
     def joint_axis(self, joint) -> tuple | None:
         """``(origin, axis)`` of `joint` (`personalize.frames.Joint`) for the registration's on-axis projection, or
         None when the markers are on the prominences."""

@@ -111,7 +111,8 @@ def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
                 f"axis (standing hip rotation sd {STANDING_HIP_ROTATION_SD_DEG:g} deg; pipeline.virtual_markers)")
     reg = register_with_centre(f"femur_{s}", ctx.bones, [f"femur_{s}"], (f"{S}KNE", f"{S}MFC", f"{S}TRO"), static,
                                ctx.meshes, j_hip.centre, hip.gaussian.scaled(1.0 / hip_scale),
-                               axis=ctx.joint_axis(j_knee), fallback=[(f"{kind}_knee_centre", j_knee.centre, pig)])
+                               axis=ctx.joint_axis(j_knee), fallback=[(f"{kind}_knee_centre", j_knee.centre, pig)],
+                               tissue_scale=ctx.tissue_scale(est))
     scale = centre_scale(ctx, MRI_KNEE_CENTRE_COV_SCALE, MRI_KNEE_CENTRE_COV_SCALE_MEASURED)
     mri = reg.transfer_estimate(j_knee.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_KNEE_MODEL_SD))
     u, sd, _ = reg.transfer_direction(j_knee.axis, j_knee.axis_sd_deg)

@@ -19,8 +19,9 @@ Two tests on the built model in the static lab frame (the bones moved there by t
   or within `OFF_BONE_MARKER_SURFACE_MARGIN` for a marker that does not sit on a bony landmark (wand,
   cluster and device markers: neither in `marker_registration.SEGMENT_MARKERS` nor given a ``landmark`` by the
   subject's marker set).  Where the soft tissue under a
-  marker was measured in the MRI (`personalize.skin.SkinThickness` t ± s), the limit is at least
-  t + `SKIN_SD_FACTOR` s + the marker radius: a thick but measured tissue is not a failure.
+  marker was measured in the MRI (`personalize.skin.SkinThickness` t ± s), or estimated from the site prior
+  and the subject's soft-tissue scale (`prior_tissue`), the limit is at least
+  t + `SKIN_SD_FACTOR` s + the marker radius: a thick but measured or expected tissue is not a failure.
 
 and a third against the MRI bones themselves:
 
@@ -44,8 +45,9 @@ from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
 from lowerlimb.topology import JOINT_BONES
 
 from ..marker_registration import SEGMENT_MARKERS
+from ..registration import skin_prior
 
-__all__ = ["JOINT_BOX_MARGIN", "MARKER_SURFACE_MARGIN", "OFF_BONE_MARKER_SURFACE_MARGIN", "SKIN_SD_FACTOR",
+__all__ = ["prior_tissue", "PriorTissue", "JOINT_BOX_MARGIN", "MARKER_SURFACE_MARGIN", "OFF_BONE_MARKER_SURFACE_MARGIN", "SKIN_SD_FACTOR",
            "SEGMENT_LENGTH_TOLERANCE", "SEGMENTS", "ModelCheck", "model_checks", "check_model", "bone_segment_lengths"]
 
 #: m, how far a joint centre may lie outside its bones' bounding boxes: issue #17 ([R1]), "What to build"
@@ -113,6 +115,37 @@ def bone_segment_lengths(joints: dict, sides) -> dict:
             if ja is not None and jb is not None:
                 out.setdefault(s, {})[seg] = float(np.linalg.norm(np.asarray(ja.centre.mean, float)
                                                                   - np.asarray(jb.centre.mean, float)))
+    return out
+
+
+@dataclass(frozen=True)
+class PriorTissue:
+    """Soft tissue (m) expected under a bony-landmark marker: the site prior scaled by the subject's k."""
+
+    thickness: float
+    sd: float
+
+
+def prior_tissue(est, marker_set, labels) -> dict:
+    """label -> `PriorTissue` of the bony-landmark markers among `labels`: the site prior
+    (`personalize.registration.skin_prior`, of the marker's landmark) times the soft-tissue scale k the pelvis
+    registration estimated (sd² = (k sd0)² + (k t0 s)², s the sd of ln k); {} without an estimated k.  An obese
+    subject's trochanter marker 60-80 mm off the bone is its tissue, not a diverged registration."""
+    reg = getattr(est, "registrations", {}).get("pelvis")
+    k = getattr(reg, "tissue_scale", None)
+    if k is None:
+        return {}
+    ls = float(getattr(reg, "tissue_scale_log_sd", 0.0))
+    out = {}
+    for label in labels:
+        md = marker_set.markers.get(label) if marker_set is not None else None
+        site = md.landmark if md is not None and md.landmark else label
+        if md is None and label not in _BONY_MARKERS:
+            continue
+        if md is not None and not md.landmark:
+            continue
+        t0, sd0 = skin_prior(site)
+        out[label] = PriorTissue(k * t0, float(np.hypot(k * sd0, k * t0 * ls)))
     return out
 
 

@@ -10,6 +10,7 @@ from lowerlimb.errors import FitError, InputError
 
 from .inputs import SubjectInputs, find_inputs, label_volume
 from .joints import estimate_joints, gate_registrations, pelvis_skin
+from .model_checks import prior_tissue
 from .summary import SubjectSummary, write_summary
 
 __all__ = ["run_subject", "read_subject_bones", "build_model"]
@@ -112,7 +113,8 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     say("checking the model against the bones")
     ms = inputs.marker_set
     bony = frozenset(k for k, v in ms.markers.items() if v.landmark) if ms is not None else frozenset()
-    check_model(pm, meshes_lab, inputs.folder, skin, bone_segment_lengths(joints, inputs.sides), bony)
+    check_model(pm, meshes_lab, inputs.folder, {**prior_tissue(est, ms, [m.name for m in pm.model.markers]), **(skin or {})},
+                bone_segment_lengths(joints, inputs.sides), bony)
     truth = truth_in_static_lab(inputs)
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)

@@ -14,14 +14,14 @@ from lowerlimb.errors import InputError
 from lowerlimb.estimates import Gaussian
 
 from ..marker_registration import marker_correspondences
-from ..registration import Registration
+from ..registration import Registration, skin_prior
 
 __all__ = ["register_with_centre", "toe_landmark"]
 
 
 def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static: dict, meshes: dict,
                          centre_mri: Gaussian | None, centre_lab: Gaussian | None, axis=None, virtual=None,
-                         fallback=(), extra=(), sites=None) -> Registration:
+                         fallback=(), extra=(), sites=None, tissue_scale=None) -> Registration:
     """Register one segment from its markers plus one joint centre known in both frames.
 
     ``axis = (point, direction)`` (scanner frame): the landmarks are projected on
@@ -34,7 +34,16 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
     and the MRI estimates of that segment are then not independent of the motion ones).  ``extra``: (name,
     mri `Gaussian`, lab `Gaussian`) pairs always used (`virtual_markers.knee_axis_pairs`).
     """
-    corr = marker_correspondences(bones, bone_names, marker_names, static, surfaces=meshes, axis=axis, sites=sites)
+    thick = sd = None
+    if tissue_scale is not None:
+        # the subject's soft-tissue scale k (estimated with the pelvis, ln k ~ N(., s)) on every site prior:
+        # t = k t0, sd² = (k sd0)² + (k t0 s)²
+        k, s = tissue_scale
+        prior = {n: skin_prior(n) for n in marker_names}
+        thick = {n: k * m for n, (m, _) in prior.items()}
+        sd = {n: float(np.hypot(k * d, k * m * s)) for n, (m, d) in prior.items()}
+    corr = marker_correspondences(bones, bone_names, marker_names, static, surfaces=meshes, axis=axis, sites=sites,
+                                  skin_thickness=thick, skin_sd=sd)
     for n, (p, nrm) in (virtual or {}).items():
         if n in static:
             corr.add_marker(n, Gaussian(p, np.zeros((3, 3))), static[n], nrm)
