@@ -11,8 +11,6 @@ Plug-in-Gait ankle centre (else the malleolus-marker midpoint,
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from lowerlimb.errors import FitError, InputError
@@ -63,7 +61,7 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
             f"sd {KNEE_STANDING_ROTATION_SD_DEG:g} deg; pipeline.virtual_markers)")
     reg = register_with_centre(f"tibia_{s}", ctx.bones, [f"tibia_{s}", f"fibula_{s}"],
                                (f"{S}ANK", f"{S}MMA", f"{S}TTB", f"{S}HFB"), ctx.static, ctx.meshes, j_knee.centre,
-                               knee.gaussian.scaled(float(os.environ.get("ANCHOR_F", "1")) / knee_scale), axis=ctx.joint_axis(j_ankle),
+                               knee.gaussian.scaled(1.0 / knee_scale), axis=ctx.joint_axis(j_ankle),
                                fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)], extra=extra,
                                # on the transmalleolar axis (Plug-in-Gait) the tips' projections, not the prominences
                                sites={f"{S}ANK": "lateral_malleolus_tip", f"{S}MMA": "medial_malleolus_tip"}
