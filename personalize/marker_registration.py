@@ -21,8 +21,8 @@ from lowerlimb.errors import InputError
 from lowerlimb.estimates import Gaussian
 from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
 
-from .registration import (MARKER_PLACEMENT_SD, SURFACE_NORMAL_SD_DEG, Registration, register_landmarks, skin_prior,
-                           static_marker_positions)
+from .registration import (MARKER_PLACEMENT_SD, SURFACE_NORMAL_SD_DEG, Registration, palpation_sd, register_landmarks,
+                           skin_prior, static_marker_positions)
 
 if TYPE_CHECKING:
     from personalize.landmarks.common import BoneLandmarks, LandmarkSet
@@ -94,7 +94,8 @@ class Correspondences:
 
     Per pair: the scanner point and its covariance, the marker centre and its
     covariance, the outward normal, the offset along it (soft tissue + marker
-    radius; 0 for a point known in both frames) with its sd, and the normal's sd.
+    radius; 0 for a point known in both frames) with its sd, the normal's sd and
+    the palpation sd across the normal (0 for a point known in both frames).
     """
 
     names: list = field(default_factory=list)
@@ -107,6 +108,7 @@ class Correspondences:
     offset_sd: list = field(default_factory=list)
     normal_sd_deg: list = field(default_factory=list)
     tissue: list = field(default_factory=list)
+    palpation_sd: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -124,16 +126,22 @@ class Correspondences:
         self.offset_sd.append(float(offset_sd))
         self.normal_sd_deg.append(float(normal_sd_deg))
         self.tissue.append(0.0)
+        self.palpation_sd.append(0.0)
 
     def add_marker(self, name: str, mri: Gaussian, lab: Gaussian, normal, *, skin_thickness=None, skin_sd=None,
-                   marker_radius: float = DEFAULT_MARKER_RADIUS, normal_sd_deg: float = SURFACE_NORMAL_SD_DEG) -> None:
+                   marker_radius: float = DEFAULT_MARKER_RADIUS, normal_sd_deg: float = SURFACE_NORMAL_SD_DEG,
+                   palpated: bool | None = None) -> None:
         """A skin marker over a scanner point: offset = soft tissue (`skin_thickness`, else the site prior) + radius.
 
-        A prior tissue is recorded in ``tissue`` (0 for a given one): `register` can estimate its scale."""
+        A prior tissue is recorded in ``tissue`` (0 for a given one): `register` can estimate its scale.  A
+        palpated marker carries its site's palpation sd across the normal (`registration.palpation_sd`);
+        ``palpated=None``: palpated unless its tissue is given (measured in the MRI: the measured path's scales
+        were calibrated on phantoms whose markers sit exactly)."""
         self.add(name, mri, lab, normal, _per_marker(skin_thickness, name, 0) + marker_radius,
                  _per_marker(skin_sd, name, 1), normal_sd_deg)
         given = skin_thickness.get(name) if isinstance(skin_thickness, dict) else skin_thickness
         self.tissue[-1] = _per_marker(None, name, 0) if given is None else 0.0
+        self.palpation_sd[-1] = palpation_sd(name) if (given is None if palpated is None else palpated) else 0.0
 
     def register(self, segment: str | None = None, *, k_outlier: float = 3.0, tissue_prior=None) -> Registration:
         """`register_landmarks` of these pairs; with `tissue_prior` (`kinematics.gait.soft_tissue.TissueScalePrior`)
@@ -142,13 +150,13 @@ class Correspondences:
                                   np.array(self.normals), np.array(self.offset), offset_sd=np.array(self.offset_sd),
                                   normal_sd_deg=np.array(self.normal_sd_deg), names=self.names, k_outlier=k_outlier,
                                   segment=segment, tissue=np.array(self.tissue) if tissue_prior is not None else None,
-                                  tissue_prior=tissue_prior)
+                                  tissue_prior=tissue_prior, palpation_sd=np.array(self.palpation_sd))
 
 
 def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marker_names, static: Mapping[str, Gaussian],
                            *, surfaces: dict | None = None, normals: dict | None = None, skin_thickness=None,
                            skin_sd=None, marker_radius: float = DEFAULT_MARKER_RADIUS, axis=None,
-                           sites: Mapping[str, str] | None = None) -> Correspondences:
+                           sites: Mapping[str, str] | None = None, palpated: bool | None = None) -> Correspondences:
     """The landmarks of `bone_names` named like a marker of `marker_names` that `static` shows (in that order).
 
     Each landmark p is paired with its marker, offset along the outward normal
@@ -205,7 +213,7 @@ def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marke
                 p = along
                 nrm = u if np.dot(p - c0, u) > 0 else -u
         out.add_marker(n, Gaussian(p, lm.cov), static[n], nrm, skin_thickness=skin_thickness, skin_sd=skin_sd,
-                       marker_radius=marker_radius, normal_sd_deg=nsd)
+                       marker_radius=marker_radius, normal_sd_deg=nsd, palpated=palpated)
     return out
 
 

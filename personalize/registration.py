@@ -55,6 +55,7 @@ from lowerlimb.geometry import DEFAULT_MARKER_RADIUS, kabsch, skew
 __all__ = [
     "Registration", "register_landmarks", "static_marker_positions", "express_in_frame", "SKIN_THICKNESS",
     "skin_prior", "GATE_P", "gate_statistic", "MARKER_PLACEMENT_SD", "SURFACE_NORMAL_SD_DEG", "PALPATION_SD",
+    "PALPATION_SD_BY_SITE", "palpation_sd",
 ]
 
 #: soft-tissue thickness (m) and sd of a site absent from the per-site table `kinematics.gait.soft_tissue`
@@ -75,6 +76,22 @@ SURFACE_NORMAL_SD_DEG = 10.0
 #: (Med Biol Eng Comput 37:155; pelvis and lower-limb landmarks, rms 6-21 mm).  The measured-tissue path keeps
 #: `MARKER_PLACEMENT_SD` alone: its scales were calibrated on phantoms whose markers sit exactly.
 PALPATION_SD = 0.006
+#: m, palpation sd across the bone normal per landmark site (per axis: the 2-D rms misplacement / sqrt 2), after
+#: the inter-examiner dispersions of Della Croce, Cappozzo & Kerrigan 1999 (Med Biol Eng Comput 37:155) and
+#: Della Croce et al. 2005 (Med Biol Eng Comput 43:143): the greater trochanter worst, the malleoli best;
+#: `PALPATION_SD` for a site not listed
+PALPATION_SD_BY_SITE = {k: v * 1e-3 / np.sqrt(2.0) for k, v in {
+    "ASI": 8.0, "PSI": 10.0, "TRO": 15.0, "KNE": 10.0, "MFC": 10.0, "TTB": 7.0, "HFB": 9.0, "ANK": 5.0,
+    "MMA": 5.0, "HEE": 8.0, "LCA": 8.0, "D1M": 5.0, "D5M": 5.0, "P1M": 7.0, "P5M": 7.0, "TOE": 6.0}.items()}
+
+
+def palpation_sd(marker: str) -> float:
+    """`PALPATION_SD_BY_SITE` of a marker's site (``"RTRO"`` -> TRO; ``SACR`` lies over the PSIS)."""
+    m = str(marker).upper()
+    m = {"SACR": "PSI"}.get(m, m)
+    if len(m) > 1 and m[0] in "RL" and m[1:] in PALPATION_SD_BY_SITE:
+        return float(PALPATION_SD_BY_SITE[m[1:]])
+    return float(PALPATION_SD_BY_SITE.get(m, PALPATION_SD))
 
 def _tangent_sd_deg(cov: np.ndarray) -> float:
     """1-sd angle (deg) of a unit vector from its (rank-2) 3x3 covariance: sqrt(trace / 2)."""
@@ -406,7 +423,7 @@ class _Tissue:
 
     Point k sits at q_k(u) = p_k + (f_k + e^u μ_k) n_k: f_k the fixed part (marker radius, tissue not
     estimated), μ_k the prior tissue scaled (0: not scaled); its variance along n_k is s_k² + (e^u μ_k σ_s)²
-    and across n_k (d_k(u) σ_n,k)² + σ_p² (σ_p = `PALPATION_SD` where μ_k > 0); ln k ~ N(u₀, σ_u²).
+    and across n_k (d_k(u) σ_n,k)² + σ_p,k² (σ_p,k the point's palpation sd); ln k ~ N(u₀, σ_u²).
     """
 
     P: np.ndarray
@@ -419,10 +436,11 @@ class _Tissue:
     C0: np.ndarray
     u0: float
     su: float
+    palp: np.ndarray
 
     def take(self, idx) -> "_Tissue":
         return _Tissue(self.P[idx], self.N[idx], self.fixed[idx], self.mu[idx], self.sd_fixed[idx], self.site_log_sd,
-                       self.normal_sd[idx], self.C0[idx], self.u0, self.su)
+                       self.normal_sd[idx], self.C0[idx], self.u0, self.su, self.palp[idx])
 
     def points(self, u: float) -> np.ndarray:
         return self.P + (self.fixed + np.exp(u) * self.mu)[:, None] * self.N
@@ -432,7 +450,7 @@ class _Tissue:
         d = self.fixed + k * self.mu
         sd2 = self.sd_fixed ** 2 + (k * self.mu * self.site_log_sd) ** 2
         nn = np.einsum("ki,kj->kij", self.N, self.N)
-        across = (d * self.normal_sd) ** 2 + np.where(self.mu > 0, PALPATION_SD ** 2, 0.0)
+        across = (d * self.normal_sd) ** 2 + self.palp ** 2
         return self.C0 + sd2[:, None, None] * nn + across[:, None, None] * (np.eye(3) - nn) + 1e-12 * np.eye(3)
 
 
@@ -474,7 +492,7 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
                        offset=SKIN_THICKNESS + DEFAULT_MARKER_RADIUS, *, offset_sd: float = SKIN_THICKNESS_SD,
                        normal_sd_deg: float | np.ndarray = SURFACE_NORMAL_SD_DEG, names=None,
                        k_outlier: float = 3.0, min_points: int = 3, segment: str | None = None,
-                       tissue=None, tissue_prior=None) -> Registration:
+                       tissue=None, tissue_prior=None, palpation_sd=None) -> Registration:
     """Weighted rigid registration of MRI landmarks to marker centres, with outlier rejection.
 
     See the module docstring for the model and the minimised χ².
@@ -510,6 +528,8 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
     min_points : never go below this many correspondences (≥ 3)
     tissue : (K,) m prior tissue means to scale (0 where the offset is known), or None
     tissue_prior : `kinematics.gait.soft_tissue.TissueScalePrior` (median, log_sd, site_log_sd), or None
+    palpation_sd : float or (K,) m, palpation sd across the normal of each point (0 for a point known in both
+        frames; `palpation_sd` per marker site); None: `PALPATION_SD` for the points whose tissue is estimated
 
     Returns
     -------
@@ -545,11 +565,14 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
             if np.any(mu < 0) or not np.all(np.isfinite(mu)):
                 raise InputError(src, "prior tissue means must be finite and >= 0")
             if np.any(mu > 0):
+                palp = (np.where(mu > 0, PALPATION_SD, 0.0) if palpation_sd is None
+                        else np.broadcast_to(np.asarray(palpation_sd, float), (K,)).copy())
                 tis = _Tissue(P, N, d - mu, mu, np.where(mu > 0, 0.0, ds), float(tissue_prior.site_log_sd), ns,
-                              Cq.copy(), float(np.log(tissue_prior.median)), float(tissue_prior.log_sd))
+                              Cq.copy(), float(np.log(tissue_prior.median)), float(tissue_prior.log_sd), palp)
         Q = P + d[:, None] * N
         nn = np.einsum("ki,kj->kij", N, N)
-        Cq = Cq + ds[:, None, None] ** 2 * nn + (d * ns)[:, None, None] ** 2 * (np.eye(3) - nn)
+        ps = np.zeros(K) if palpation_sd is None else np.broadcast_to(np.asarray(palpation_sd, float), (K,))
+        Cq = Cq + ds[:, None, None] ** 2 * nn + ((d * ns) ** 2 + ps ** 2)[:, None, None] * (np.eye(3) - nn)
     # Floor so that exact inputs keep the information matrix invertible.
     Cq = Cq + 1e-12 * np.eye(3)
 

@@ -43,10 +43,10 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
         thick = {n: k * m for n, (m, _) in prior.items()}
         sd = {n: float(np.hypot(k * d, k * m * s)) for n, (m, d) in prior.items()}
     corr = marker_correspondences(bones, bone_names, marker_names, static, surfaces=meshes, axis=axis, sites=sites,
-                                  skin_thickness=thick, skin_sd=sd)
+                                  skin_thickness=thick, skin_sd=sd, palpated=True)
     for n, (p, nrm) in (virtual or {}).items():
         if n in static:
-            corr.add_marker(n, Gaussian(p, np.zeros((3, 3))), static[n], nrm)
+            corr.add_marker(n, Gaussian(p, np.zeros((3, 3))), static[n], nrm, palpated=True)
     if centre_mri is not None and centre_lab is not None:
         corr.add("joint_centre", centre_mri, centre_lab)
     for name, mri, lab in extra:
