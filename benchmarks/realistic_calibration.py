@@ -52,7 +52,7 @@ sys.path.insert(0, str(REPO))
 
 JOINTS = ("hip", "knee", "ankle")
 #: constants fitted here, per joint: (variance scale, model-error sd)
-CONSTANTS = {"hip": ("MRI_HIP_COV_SCALE", "MRI_HIP_MODEL_SD"),
+CONSTANTS = {"hip": ("MRI_HIP_COV_SCALE", "MRI_HIP_MODEL_SD", "MOTION_HIP_MODEL_SD"),
              "knee": ("MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_MODEL_SD", "MOTION_KNEE_MODEL_SD"),
              "ankle": ("MRI_ANKLE_CENTRE_COV_SCALE", "MRI_ANKLE_MODEL_SD", "MOTION_ANKLE_MODEL_SD")}
 DATA = REPO.parent / "shared" / "data"
@@ -123,7 +123,7 @@ def legs(folder: Path, results: str = "results") -> list[dict]:
             continue
         summ = json.loads(f.read_text())
         subj = folder / "subjects" / res.name
-        truth = true_static_centres(subj)
+        truth = true_static_centres(subj, (summ.get("lab") or {}).get("internal_from_lab"))  # the run's frame
         spec = json.loads((subj / "realistic.json").read_text())
         measured = any(v.get("source") == "MRI" for v in (summ.get("skin_thickness") or {}).values())
         for key, t in truth.items():
@@ -133,13 +133,16 @@ def legs(folder: Path, results: str = "results") -> list[dict]:
                 continue
             sname, mname = CONSTANTS[jn][:2]
             scale = float(summ["mri_hip_cov_scale"]) if jn == "hip" else float(const[sname])
-            msd = float(const.get(CONSTANTS[jn][2], 0.0)) if len(CONSTANTS[jn]) > 2 else 0.0
+            msource = (summ.get("sources") or {}).get(f"{key}_motion", "")
+            regression = jn != "hip" or "regression" in msource
+            msd = float(const.get(CONSTANTS[jn][2], 0.0)) if len(CONSTANTS[jn]) > 2 and regression else 0.0
             rows.append({"subject": res.name, "anatomy": spec["anatomy"], "tissue": spec["tissue"], "joint": jn,
                          "side": s, "measured": measured, "truth": np.asarray(t, float),
                          "mri": np.asarray(e["mri"], float), "mri_cov": np.asarray(e["mri_cov"], float),
                          "motion": np.asarray(e["motion"], float), "motion_cov": np.asarray(e["motion_cov"], float),
                          "fused": np.asarray(e["fused"]["mean"], float), "fused_cov": np.asarray(e["fused"]["cov"], float),
                          "scale": scale, "model_sd": float(const.get(mname, 0.0)), "motion_model_sd": msd,
+                         "motion_regression": regression,
                          "tissue_est": {k: v for k, v in (summ.get("skin_thickness") or {}).items()},
                          "errors": summ.get("errors") or {}})
     return rows
@@ -172,7 +175,6 @@ def report(folder: Path, results: str = "results") -> dict:
 
 def fit(folder: Path, results: str = "results") -> dict:
     """(s_j, σ_j) per joint by maximum likelihood on the training legs (prior soft tissue), and their coverage."""
-    from personalize.fusion import fuse_gaussian
     from personalize.pipeline.calibration import coverage, fit_model_error, fit_scale_and_model_error
 
     rows = [r for r in legs(folder, results) if not r["measured"]]
@@ -186,16 +188,17 @@ def fit(folder: Path, results: str = "results") -> dict:
         raw = np.array([_raw_cov(r) for r in rs])
         s, sd = fit_scale_and_model_error(err, raw)
         new_mri = raw * s + sd ** 2 * np.eye(3)
-        # the motion source: the hip's (SCoRE, a regression) kept as stated; the knee's and ankle's get a model-error
-        # sd on top of their stated covariance (MOTION_KNEE_MODEL_SD, MOTION_ANKLE_MODEL_SD)
+        # the motion source gets a model-error sd on top of its stated covariance (MOTION_KNEE_MODEL_SD,
+        # MOTION_ANKLE_MODEL_SD; MOTION_HIP_MODEL_SD on the regression hips, Davis / Harrington, SCoRE kept as stated)
         merr = np.array([r["motion"] - r["truth"] for r in rs])
         motion_sd = float(np.sqrt(np.mean(np.sum(merr ** 2, axis=1)) / 3.0))
         mraw = np.array([r["motion_cov"] - r["motion_model_sd"] ** 2 * np.eye(3) for r in rs])
-        msd = 0.0 if jn == "hip" else fit_model_error(merr, mraw)
-        mnew = mraw + msd ** 2 * np.eye(3)
+        reg = np.array([r["motion_regression"] for r in rs])
+        msd = fit_model_error(merr[reg], mraw[reg]) if reg.sum() >= 4 else 0.0
+        mnew = mraw + np.where(reg, msd ** 2, 0.0)[:, None, None] * np.eye(3)
         fe, fc = [], []
         for r, C, Cm in zip(rs, new_mri, mnew):
-            f = fuse_gaussian([_gauss(r["mri"], C), _gauss(r["motion"], Cm)], ("mri", "motion"))
+            f = _fuse(jn, [_gauss(r["mri"], C), _gauss(r["motion"], Cm)])
             fe.append(f.mean - r["truth"])
             fc.append(f.cov)
         out[jn] = {"scale": s, "model_sd_m": sd, "legs": len(rs), "subjects": len({r["subject"] for r in rs}),
@@ -216,7 +219,6 @@ def fit(folder: Path, results: str = "results") -> dict:
 def offline_check(folder: Path, fits: dict, results: str = "results") -> dict:
     """The fitted (s_j, σ_j) applied to another seed's legs without a rerun: the MRI covariance rebuilt from
     C_reg, fused again with the motion source (product of Gaussians per leg), coverage before and after."""
-    from personalize.fusion import fuse_gaussian
     from personalize.pipeline.calibration import coverage
 
     rows = [r for r in legs(folder, results) if not r["measured"]]
@@ -229,8 +231,7 @@ def offline_check(folder: Path, fits: dict, results: str = "results") -> dict:
         new = np.array([f["scale"] * _raw_cov(r) + f["model_sd_m"] ** 2 * np.eye(3) for r in rs])
         mcov = [r["motion_cov"] + (f.get("motion_model_sd_m", 0.0) ** 2 - r["motion_model_sd"] ** 2) * np.eye(3)
                 for r in rs]
-        fused = [fuse_gaussian([_gauss(r["mri"], C), _gauss(r["motion"], Cm)], ("mri", "motion"))
-                 for r, C, Cm in zip(rs, new, mcov)]
+        fused = [_fuse(jn, [_gauss(r["mri"], C), _gauss(r["motion"], Cm)]) for r, C, Cm in zip(rs, new, mcov)]
         out[jn] = {"legs": len(rs), "subjects": len({r["subject"] for r in rs}),
                    "mri_before": coverage(err, np.array([r["mri_cov"] for r in rs])), "mri_after": coverage(err, new),
                    "motion_before": coverage(np.array([r["motion"] - r["truth"] for r in rs]),
@@ -242,6 +243,15 @@ def offline_check(folder: Path, fits: dict, results: str = "results") -> dict:
                                                    np.array([fu.cov for fu in fused])),
                    "fused_median_error_mm": float(np.median([np.linalg.norm(fu.mean - r["truth"]) for fu, r in zip(fused, rs)]) * 1e3)}
     return out
+
+
+def _fuse(joint: str, pair):
+    """The pipeline's fusion of one leg's MRI and motion centres: covariance intersection for the knee and ankle
+    (`personalize.fusion.fuse_intersection`: both rest on the same palpated markers), the product for the hip
+    (`personalize.pipeline.hip.fuse_hips` per leg)."""
+    from personalize.fusion import fuse_gaussian, fuse_intersection
+
+    return (fuse_gaussian if joint == "hip" else fuse_intersection)(pair, ("mri", "motion"))
 
 
 def _gauss(mean, cov):

@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 from lowerlimb.errors import InputError
 from lowerlimb.estimates import Gaussian
 
-__all__ = ["Fused", "FusedAxis", "as_gaussian", "as_axis", "fuse_gaussian", "fuse_linear", "fuse_axis",
+__all__ = ["Fused", "FusedAxis", "as_gaussian", "as_axis", "fuse_gaussian", "fuse_intersection", "fuse_linear", "fuse_axis",
            "fuse_axes", "fusion_monte_carlo"]
 
 
@@ -168,6 +168,58 @@ def fuse_gaussian(estimates, names=None) -> Fused:
     r = np.array(xs) - x
     chi2 = float(np.einsum("ni,nij,nj->", r, Ps, r))
     dof = (len(est) - 1) * d
+    p = float(stats.chi2.sf(chi2, dof)) if dof > 0 else 1.0
+    return Fused(x, C, W, shares, chi2, dof, p, names)
+
+
+def fuse_intersection(estimates, names=None) -> Fused:
+    """Covariance intersection (Julier & Uhlmann 1997) of n ≥ 1 estimates whose errors correlate by an unknown
+    amount: the MRI and motion knee (ankle) centres both rest on the same palpated epicondyle (malleolus) markers,
+    so their product (`fuse_gaussian`) states a covariance half as large as the truth allows.
+
+        C⁻¹ = Σ_i ω_i C_i⁻¹,   x = C Σ_i ω_i C_i⁻¹ x_i,   ω_i ≥ 0, Σ ω_i = 1,
+
+    ω minimising det C (Nelder-Mead on the simplex's softmax coordinates; for two estimates a bounded scalar
+    search).  C is consistent (covers the error) for any cross-correlation when each C_i is.  Weights W_i, shares,
+    chi² and p as `fuse_gaussian` reports them, the chi² of the sources against the intersection.
+    """
+    from scipy.optimize import minimize, minimize_scalar
+
+    est = [as_gaussian(e) for e in estimates]
+    if not est:
+        raise InputError("fusion", "nothing to fuse")
+    names = tuple(names) if names is not None else tuple(f"source{i}" for i in range(len(est)))
+    if len(names) != len(est):
+        raise InputError("fusion", f"{len(names)} names for {len(est)} estimates")
+    xs = np.array([np.atleast_1d(np.asarray(m, float)).ravel() for m, _ in est])
+    d = xs.shape[1]
+    for n, x in zip(names, xs):
+        if not np.all(np.isfinite(x)):
+            raise InputError(n, f"estimate must be {d} finite numbers, got {x}")
+    Ps = np.array([np.linalg.inv(_as_cov(c, d, n)) for (_, c), n in zip(est, names)])
+
+    def logdet(w):
+        return -float(np.linalg.slogdet(np.einsum("n,nij->ij", w, Ps))[1])
+
+    n = len(est)
+    if n == 1:
+        w = np.ones(1)
+    elif n == 2:
+        r = minimize_scalar(lambda a: logdet(np.array([a, 1.0 - a])), bounds=(0.0, 1.0), method="bounded",
+                            options={"xatol": 1e-6})
+        w = np.array([r.x, 1.0 - r.x])
+    else:
+        soft = lambda z: np.exp(z - z.max()) / np.exp(z - z.max()).sum()      # noqa: E731
+        w = soft(minimize(lambda z: logdet(soft(z)), np.zeros(n), method="Nelder-Mead").x)
+    P = np.einsum("n,nij->ij", w, Ps)
+    C = np.linalg.inv(P)
+    C = 0.5 * (C + C.T)
+    x = C @ np.einsum("n,nij,nj->i", w, Ps, xs)
+    W = np.einsum("ij,n,njk->nik", C, w, Ps)
+    shares = np.trace(W, axis1=1, axis2=2) / d
+    rr = xs - x
+    chi2 = float(np.einsum("ni,nij,nj->", rr, Ps, rr))
+    dof = (n - 1) * d
     p = float(stats.chi2.sf(chi2, dof)) if dof > 0 else 1.0
     return Fused(x, C, W, shares, chi2, dof, p, names)
 
