@@ -39,8 +39,8 @@ cohort, taken as `REFERENCE_BMI` and `REFERENCE_AGE` (ASSUMED: Mantovani et
 al. 2016 studied young and middle-aged adults of normal to overweight BMI and
 report the tissue correlated with BMI, without the regression used here).
 σ_k: the table's spread is ln(1 + CV²) = 0.42 (ASIS) and 0.27 (PSIS) in log
-variance, 0.35 pooled; with one shared scale and `SITE_LOG_SD` = 0.3 per site,
-σ_k = 0.5 without a body build (`SCALE_LOG_SD`) and 0.4 with one
+variance, 0.35 pooled; with one shared scale and `SITE_LOG_SD` per site (0.4,
+fitted on the realistic phantoms), σ_k = 0.5 without a body build (`SCALE_LOG_SD`) and 0.4 with one
 (`SCALE_LOG_SD_BODY_BUILD`, BMI taken to explain about a third of the
 variance of ln k: an assumption).  The registration then estimates k from the
 static trial (`personalize.registration.register_landmarks`).
