@@ -51,14 +51,14 @@ def test_prior_from_height_and_mass():
 def test_known_tissue_scale_recovered(k_true):
     """Markers over k x the table's tissue (a thick subject, exact geometry).  Fixed at the table, the fit
     fails its chi-square (p 7e-4 at k = 2.5, 1.5e-13 at k = 4: the gate would refuse the subject) with 23-41 mm
-    residuals; estimated, k comes back within 2 stated sd (2.30 +- 15 %, 3.55 +- 15 %: the per-site sd shrinks it
-    toward the prior), the residuals are 3-7 mm, p 0.3-0.8, and the hip is within 2 mm (0.9, 1.6) and inside
-    its 95 % ellipsoid."""
+    residuals; estimated, k comes back within 2 stated sd (2.19 +- 19 %, 3.31 +- 19 % with SITE_LOG_SD 0.4: the
+    per-site sd shrinks it toward the prior), the residuals are 5-11 mm, p 0.3-0.8, and the hip is within 2.5 mm
+    (1.2, 2.2) and inside its 95 % ellipsoid."""
     M = _markers(k_true * MU)
     prior = TissueScalePrior(1.0, SCALE_LOG_SD, SITE_LOG_SD, "test")
     reg, fixed = _register(M, prior), _register(M, None)
     assert abs(np.log(reg.tissue_scale / k_true)) < 2 * reg.tissue_scale_log_sd
-    assert reg.tissue_scale > 0.85 * k_true and reg.tissue_scale_log_sd < 0.2 < SCALE_LOG_SD
+    assert reg.tissue_scale > 0.8 * k_true and reg.tissue_scale_log_sd < 0.2 < SCALE_LOG_SD
     assert set(reg.tissue) == set(NAMES)
     t, sd = reg.tissue["RPSI"]
     assert t == pytest.approx(reg.tissue_scale * MU[2]) and 0 < sd < t
@@ -66,7 +66,7 @@ def test_known_tissue_scale_recovered(k_true):
     assert reg.p_value > 0.1 and reg.rms < 0.4 * fixed.rms
     y, C = reg.transfer_point(HIP)
     e = y - (R_TRUE @ HIP + T_TRUE)
-    assert np.linalg.norm(e) < 2e-3 and e @ np.linalg.solve(C, e) < 7.8
+    assert np.linalg.norm(e) < 2.5e-3 and e @ np.linalg.solve(C, e) < 7.8
 
 
 def test_tissue_scale_uncertainty_covers_truth():
