@@ -128,6 +128,22 @@ def as_gaussian(estimate, *, frame: str = "proximal"):
     raise InputError("fusion", f"cannot read a mean and covariance from {type(estimate).__name__}")
 
 
+def _information_form(estimates, names):
+    """(names, means (n, d), information matrices (n, d, d)) of the estimates, checked (one-line errors)."""
+    est = [as_gaussian(e) for e in estimates]
+    if not est:
+        raise InputError("fusion", "nothing to fuse")
+    names = tuple(names) if names is not None else tuple(f"source{i}" for i in range(len(est)))
+    if len(names) != len(est):
+        raise InputError("fusion", f"{len(names)} names for {len(est)} estimates")
+    xs = [np.atleast_1d(np.asarray(m, float)).ravel() for m, _ in est]
+    d = xs[0].size
+    for n, x in zip(names, xs):
+        if x.size != d or not np.all(np.isfinite(x)):
+            raise InputError(n, f"estimate must be {d} finite numbers, got {x}")
+    return names, np.array(xs), np.array([np.linalg.inv(_as_cov(c, d, n)) for (_, c), n in zip(est, names)])
+
+
 def fuse_gaussian(estimates, names=None) -> Fused:
     """Information-weighted fusion (product of Gaussians) of n ≥ 1 estimates.
 
@@ -147,18 +163,8 @@ def fuse_gaussian(estimates, names=None) -> Fused:
     -------
     Fused
     """
-    est = [as_gaussian(e) for e in estimates]
-    if not est:
-        raise InputError("fusion", "nothing to fuse")
-    names = tuple(names) if names is not None else tuple(f"source{i}" for i in range(len(est)))
-    if len(names) != len(est):
-        raise InputError("fusion", f"{len(names)} names for {len(est)} estimates")
-    xs = [np.atleast_1d(np.asarray(m, float)).ravel() for m, _ in est]
-    d = xs[0].size
-    for n, x in zip(names, xs):
-        if x.size != d or not np.all(np.isfinite(x)):
-            raise InputError(n, f"estimate must be {d} finite numbers, got {x}")
-    Ps = np.array([np.linalg.inv(_as_cov(c, d, n)) for (_, c), n in zip(est, names)])
+    names, xs, Ps = _information_form(estimates, names)
+    d = xs.shape[1]
     P = Ps.sum(axis=0)
     C = np.linalg.inv(P)
     C = 0.5 * (C + C.T)
@@ -167,7 +173,7 @@ def fuse_gaussian(estimates, names=None) -> Fused:
     shares = np.trace(W, axis1=1, axis2=2) / d
     r = np.array(xs) - x
     chi2 = float(np.einsum("ni,nij,nj->", r, Ps, r))
-    dof = (len(est) - 1) * d
+    dof = (len(xs) - 1) * d
     p = float(stats.chi2.sf(chi2, dof)) if dof > 0 else 1.0
     return Fused(x, C, W, shares, chi2, dof, p, names)
 
@@ -185,23 +191,13 @@ def fuse_intersection(estimates, names=None) -> Fused:
     """
     from scipy.optimize import minimize, minimize_scalar
 
-    est = [as_gaussian(e) for e in estimates]
-    if not est:
-        raise InputError("fusion", "nothing to fuse")
-    names = tuple(names) if names is not None else tuple(f"source{i}" for i in range(len(est)))
-    if len(names) != len(est):
-        raise InputError("fusion", f"{len(names)} names for {len(est)} estimates")
-    xs = np.array([np.atleast_1d(np.asarray(m, float)).ravel() for m, _ in est])
+    names, xs, Ps = _information_form(estimates, names)
     d = xs.shape[1]
-    for n, x in zip(names, xs):
-        if not np.all(np.isfinite(x)):
-            raise InputError(n, f"estimate must be {d} finite numbers, got {x}")
-    Ps = np.array([np.linalg.inv(_as_cov(c, d, n)) for (_, c), n in zip(est, names)])
 
     def logdet(w):
         return -float(np.linalg.slogdet(np.einsum("n,nij->ij", w, Ps))[1])
 
-    n = len(est)
+    n = len(xs)
     if n == 1:
         w = np.ones(1)
     elif n == 2:
