@@ -54,7 +54,7 @@ from lowerlimb.geometry import DEFAULT_MARKER_RADIUS, kabsch, skew
 
 __all__ = [
     "Registration", "register_landmarks", "static_marker_positions", "express_in_frame", "SKIN_THICKNESS",
-    "skin_prior", "GATE_P", "gate_statistic", "MARKER_PLACEMENT_SD", "SURFACE_NORMAL_SD_DEG", "PALPATION_SD",
+    "skin_prior", "scaled_skin_prior", "GATE_P", "gate_statistic", "MARKER_PLACEMENT_SD", "SURFACE_NORMAL_SD_DEG", "PALPATION_SD",
     "PALPATION_SD_BY_SITE", "palpation_sd",
 ]
 
@@ -677,6 +677,13 @@ def static_marker_positions(trial, names=None, placement_sd: float = MARKER_PLAC
         mad = 1.4826 * np.median(np.abs(x - med), axis=0) if len(x) > 2 else np.zeros(3)
         out[n] = Gaussian(med, placement_sd**2 * np.eye(3) + np.diag(mad**2))
     return out
+
+
+def scaled_skin_prior(marker: str, k: float, log_sd: float) -> tuple[float, float]:
+    """`skin_prior` (t0, sd0) times a subject's soft-tissue scale k (ln k with sd `log_sd`): (k t0, sd) m with
+    sd² = (k sd0)² + (k t0 log_sd)²."""
+    t0, sd0 = skin_prior(marker)
+    return k * t0, float(np.hypot(k * sd0, k * t0 * log_sd))
 
 
 def skin_prior(marker: str) -> tuple[float, float]:

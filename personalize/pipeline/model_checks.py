@@ -45,7 +45,7 @@ from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
 from lowerlimb.topology import JOINT_BONES
 
 from ..marker_registration import SEGMENT_MARKERS
-from ..registration import skin_prior
+from ..registration import scaled_skin_prior
 
 __all__ = ["prior_tissue", "PriorTissue", "JOINT_BOX_MARGIN", "MARKER_SURFACE_MARGIN", "OFF_BONE_MARKER_SURFACE_MARGIN", "SKIN_SD_FACTOR",
            "SEGMENT_LENGTH_TOLERANCE", "SEGMENTS", "ModelCheck", "model_checks", "check_model", "bone_segment_lengths"]
@@ -144,8 +144,7 @@ def prior_tissue(est, marker_set, labels) -> dict:
             continue
         if md is not None and not md.landmark:
             continue
-        t0, sd0 = skin_prior(site)
-        out[label] = PriorTissue(k * t0, float(np.hypot(k * sd0, k * t0 * ls)))
+        out[label] = PriorTissue(*scaled_skin_prior(site, float(k), ls))
     return out
 
 

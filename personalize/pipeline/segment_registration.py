@@ -14,7 +14,7 @@ from lowerlimb.errors import InputError
 from lowerlimb.estimates import Gaussian
 
 from ..marker_registration import marker_correspondences
-from ..registration import Registration, skin_prior
+from ..registration import Registration, scaled_skin_prior
 
 __all__ = ["register_with_centre", "toe_landmark"]
 
@@ -36,12 +36,10 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
     """
     thick = sd = None
     if tissue_scale is not None:
-        # the subject's soft-tissue scale k (estimated with the pelvis, ln k ~ N(., s)) on every site prior:
-        # t = k t0, sd² = (k sd0)² + (k t0 s)²
-        k, s = tissue_scale
-        prior = {n: skin_prior(n) for n in marker_names}
-        thick = {n: k * m for n, (m, _) in prior.items()}
-        sd = {n: float(np.hypot(k * d, k * m * s)) for n, (m, d) in prior.items()}
+        # the subject's soft-tissue scale (estimated with the pelvis) on every site prior
+        prior = {n: scaled_skin_prior(n, *tissue_scale) for n in marker_names}
+        thick = {n: t for n, (t, _) in prior.items()}
+        sd = {n: d for n, (_, d) in prior.items()}
     corr = marker_correspondences(bones, bone_names, marker_names, static, surfaces=meshes, axis=axis, sites=sites,
                                   skin_thickness=thick, skin_sd=sd, palpated=True)
     for n, (p, nrm) in (virtual or {}).items():
