@@ -9,7 +9,7 @@ from lowerlimb.estimates import Gaussian
 
 from ..fusion import Fused, FusedAxis
 
-__all__ = ["Direction", "CentreEstimates", "AxisEstimates", "AxisLine", "JointEstimates"]
+__all__ = ["Direction", "CentreEstimates", "AxisEstimates", "AxisLine", "JointEstimates", "pelvis_tissue_scale"]
 
 
 @dataclass(frozen=True)
@@ -112,12 +112,17 @@ class JointContext:
         return ms is None or ms.on_joint_axes
 
     def tissue_scale(self, est) -> tuple | None:
-        """(k, sd of ln k) of the soft tissue estimated with the pelvis registration, or None."""
-        reg = est.registrations.get("pelvis")
-        k = getattr(reg, "tissue_scale", None)
-        return None if k is None else (float(k), float(reg.tissue_scale_log_sd))
+        """`pelvis_tissue_scale` of `est`."""
+        return pelvis_tissue_scale(est)
 
     def joint_axis(self, joint) -> tuple | None:
         """``(origin, axis)`` of `joint` (`personalize.frames.Joint`) for the registration's on-axis projection, or
         None when the markers are on the prominences."""
         return (joint.origin, joint.axis) if self.markers_on_joint_axes else None
+
+
+def pelvis_tissue_scale(est) -> tuple | None:
+    """(k, sd of ln k) of the soft tissue estimated with `est`'s pelvis registration, or None."""
+    reg = getattr(est, "registrations", {}).get("pelvis")
+    k = getattr(reg, "tissue_scale", None)
+    return None if k is None else (float(k), float(getattr(reg, "tissue_scale_log_sd", 0.0)))

@@ -46,6 +46,7 @@ from lowerlimb.topology import JOINT_BONES
 
 from ..marker_registration import SEGMENT_MARKERS
 from ..registration import scaled_skin_prior
+from .joint_estimates import pelvis_tissue_scale
 
 __all__ = ["prior_tissue", "PriorTissue", "JOINT_BOX_MARGIN", "MARKER_SURFACE_MARGIN", "OFF_BONE_MARKER_SURFACE_MARGIN", "SKIN_SD_FACTOR",
            "SEGMENT_LENGTH_TOLERANCE", "SEGMENTS", "ModelCheck", "model_checks", "check_model", "bone_segment_lengths"]
@@ -131,11 +132,9 @@ def prior_tissue(est, marker_set, labels) -> dict:
     (`personalize.registration.skin_prior`, of the marker's landmark) times the soft-tissue scale k the pelvis
     registration estimated (sd² = (k sd0)² + (k t0 s)², s the sd of ln k); {} without an estimated k.  An obese
     subject's trochanter marker 60-80 mm off the bone is its tissue, not a diverged registration."""
-    reg = getattr(est, "registrations", {}).get("pelvis")
-    k = getattr(reg, "tissue_scale", None)
-    if k is None:
+    scale = pelvis_tissue_scale(est)
+    if scale is None:
         return {}
-    ls = float(getattr(reg, "tissue_scale_log_sd", 0.0))
     out = {}
     for label in labels:
         md = marker_set.markers.get(label) if marker_set is not None else None
@@ -144,7 +143,7 @@ def prior_tissue(est, marker_set, labels) -> dict:
             continue
         if md is not None and not md.landmark:
             continue
-        out[label] = PriorTissue(*scaled_skin_prior(site, float(k), ls))
+        out[label] = PriorTissue(*scaled_skin_prior(site, *scale))
     return out
 
 
