@@ -163,9 +163,10 @@ def _normal(mesh, p_local: np.ndarray, radius: float = 0.006) -> np.ndarray:
         near = np.argsort(np.linalg.norm(V - p_local, axis=1))[:8]
     n = N[near].sum(axis=0)
     n /= np.linalg.norm(n)
-    if np.dot(p_local - V.mean(axis=0), n) < 0:        # inward-wound mesh
-        n = -n
-    return n
+    # vertex normals follow the face winding: an inward-wound mesh has a negative signed volume.  (Testing
+    # against the direction from the bone's centroid flips correct normals near the ends of long bones: the
+    # lateral malleolus's marker went 15 mm into the ankle.)
+    return -n if mesh.volume < 0 else n
 
 
 def find_landmarks(anat, q_standing) -> dict:

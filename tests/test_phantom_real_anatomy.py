@@ -156,6 +156,14 @@ def _bone_distance(anat, label, tm):
     return float(np.min(np.linalg.norm(V - surf, axis=1))), float(np.linalg.norm(p - surf))
 
 
+def _clearance(anat, tm):
+    """Distance from a marker centre (body frame) to the nearest vertex of any bone of its body."""
+    p = np.asarray(tm["offset_m"])
+    V = np.concatenate([np.asarray(anat.local_meshes[b].vertices) for b, body in anat.bone_body.items()
+                        if body == tm["body"]])
+    return float(np.min(np.linalg.norm(V - p, axis=1)))
+
+
 @pytest.mark.parametrize("ms_name,lab,walk,build,fmt", [
     ("pig", "z-up", "+x", "adult", "c3d"),
     ("ior", "y-up", "-z", "child", "trc"),
@@ -196,6 +204,9 @@ def test_marker_set_lab_and_tissue_written_as_truth(icl, tmp_path, ms_name, lab,
         on_bone, off = _bone_distance(icl, k, tm)
         assert on_bone < 1e-9
         assert off == pytest.approx(tm["thickness_m"] + DEFAULT_MARKER_RADIUS, abs=1e-9)
+        # ... on the outside: no bone of its body nearer than most of that offset (a normal flipped inward put
+        # the lateral malleolus marker 15 mm into the ankle, 1-2 mm from the fibula)
+        assert _clearance(icl, tm) > 0.6 * off, k
         assert tm["palpation_error_m"] < 0.06
     assert truth["tissue"]["build"] == build
 
