@@ -168,7 +168,8 @@ class Correspondences:
 def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marker_names, static: Mapping[str, Gaussian],
                            *, surfaces: dict | None = None, normals: dict | None = None, skin_thickness=None,
                            skin_sd=None, marker_radius: float = DEFAULT_MARKER_RADIUS, axis=None,
-                           sites: Mapping[str, str] | None = None, palpated: bool | None = None) -> Correspondences:
+                           sites: Mapping[str, str] | None = None, palpated: bool | None = None,
+                           tissue_scale: float = 1.0) -> Correspondences:
     """The landmarks of `bone_names` named like a marker of `marker_names` that `static` shows (in that order).
 
     Each landmark p is paired with its marker, offset along the outward normal
@@ -186,7 +187,10 @@ def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marke
     Without `axis` every landmark is the palpated site itself (IOR, CAST:
     markers on the prominences).  ``sites``: marker -> the landmark to pair it
     with when not the one named like it (the malleolus tips for markers put on
-    the transmalleolar axis).
+    the transmalleolar axis).  The normal of a marker over prior (not measured)
+    tissue is averaged over the expected tissue thickness (`tissue_scale` x its
+    prior, at least `NORMAL_RADIUS`): fat smooths a prominence at the scale of
+    its own thickness.
 
     Parameters
     ----------
@@ -211,7 +215,8 @@ def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marke
         if normals is not None and n in normals:
             nrm, nsd = np.asarray(normals[n], float), SURFACE_NORMAL_SD_DEG
         elif surf is not None:
-            nrm, nsd = surface_normal(surf, p), SURFACE_NORMAL_SD_DEG
+            nrm, nsd = surface_normal(surf, p, _normal_radius(n, skin_thickness, palpated, tissue_scale)), \
+                SURFACE_NORMAL_SD_DEG
         else:
             ref = _internal_reference(bones, bone_names, p)
             if ref is None:
@@ -287,11 +292,33 @@ class SegmentRegistrations(dict):
         self.skipped = dict(skipped or {})
 
 
+def _normal_radius(name: str, skin_thickness, palpated: bool | None, tissue_scale: float) -> float:
+    """Radius (m) of `surface_normal` for marker `name`: `NORMAL_RADIUS` where its tissue is measured (sampled
+    along the vertex's own normal), else at least the expected tissue, `tissue_scale` x its thickness."""
+    given = skin_thickness.get(name) if isinstance(skin_thickness, dict) else skin_thickness
+    if palpated is False or (palpated is None and given is not None):
+        return NORMAL_RADIUS
+    return max(NORMAL_RADIUS, float(tissue_scale) * _per_marker(skin_thickness, name, 0))
+
+
 def _per_marker(value, name: str, k: int) -> float:
     """`value` for marker `name`: a number, a {name: number} dict, or None; else the site prior's mean (k=0) / sd (k=1)."""
     if isinstance(value, dict):
         value = value.get(name)
     return float(skin_prior(name)[k] if value is None else value)
+
+
+def _segment_correspondences(bones, bone_names, wanted, static, surfaces, normals, skin_thickness, skin_sd,
+                             marker_radius, virtual: dict, tissue_scale: float = 1.0) -> Correspondences:
+    """`marker_correspondences` of one segment plus its virtual markers ({marker: (scanner point, normal)})."""
+    corr = marker_correspondences(bones, bone_names, wanted, static, surfaces=surfaces, normals=normals,
+                                  skin_thickness=skin_thickness, skin_sd=skin_sd, marker_radius=marker_radius,
+                                  tissue_scale=tissue_scale)
+    for n, (p, nrm) in virtual.items():
+        if n in static:
+            corr.add_marker(n, Gaussian(np.asarray(p, float), np.zeros((3, 3))), static[n], nrm,
+                            skin_thickness=skin_thickness, skin_sd=skin_sd, marker_radius=marker_radius)
+    return corr
 
 
 def register_segments(landmarks: LandmarkSet, static_trial, *, sides=("r", "l"), segments=None,
@@ -374,12 +401,8 @@ def register_segments(landmarks: LandmarkSet, static_trial, *, sides=("r", "l"),
         lab_names = [n for n in wanted if n in static]
         if not mri and not lab_names:
             continue
-        corr = marker_correspondences(bones, bone_names, wanted, static, surfaces=surfaces, normals=normals,
-                                      skin_thickness=skin_thickness, skin_sd=skin_sd, marker_radius=marker_radius)
-        for n, (p, nrm) in (virtual or {}).get(seg_name, {}).items():
-            if n in static:
-                corr.add_marker(n, Gaussian(np.asarray(p, float), np.zeros((3, 3))), static[n], nrm,
-                                skin_thickness=skin_thickness, skin_sd=skin_sd, marker_radius=marker_radius)
+        corr = _segment_correspondences(bones, bone_names, wanted, static, surfaces, normals, skin_thickness, skin_sd,
+                                        marker_radius, (virtual or {}).get(seg_name, {}))
         if len(corr) < 3:
             missing_mri = [n for n in wanted if n not in mri]
             missing_lab = [n for n in wanted if n not in static]
@@ -390,5 +413,12 @@ def register_segments(landmarks: LandmarkSet, static_trial, *, sides=("r", "l"),
                 out.skipped[seg_name] = problem
                 continue
             raise InputError(tsrc if len(mri) >= 3 else landmarks_source, problem)
-        out[seg_name] = corr.register(seg_name, k_outlier=k_outlier, tissue_prior=tissue_prior)
+        reg = corr.register(seg_name, k_outlier=k_outlier, tissue_prior=tissue_prior)
+        if reg.tissue_scale is not None and surfaces is not None and normals is None:
+            # the normals' averaging radius follows the tissue: once its scale is estimated, fit again with it
+            corr = _segment_correspondences(bones, bone_names, wanted, static, surfaces, normals, skin_thickness,
+                                            skin_sd, marker_radius, (virtual or {}).get(seg_name, {}),
+                                            tissue_scale=reg.tissue_scale)
+            reg = corr.register(seg_name, k_outlier=k_outlier, tissue_prior=tissue_prior)
+        out[seg_name] = reg
     return out

@@ -525,7 +525,7 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
         offset² σ² across the normal)
     names : K names (for reporting); default "0", "1", ...
     k_outlier : rejection threshold in sd (converted to the χ²₃ quantile)
-    min_points : never go below this many correspondences (≥ 3)
+    min_points : never go below this many correspondences (≥ 3; ≥ 4 with the tissue scale estimated)
     tissue : (K,) m prior tissue means to scale (0 where the offset is known), or None
     tissue_prior : `kinematics.gait.soft_tissue.TissueScalePrior` (median, log_sd, site_log_sd), or None
     palpation_sd : float or (K,) m, palpation sd across the normal of each point (0 for a point known in both
@@ -581,6 +581,11 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
         raise InputError(src, f"landmarks {', '.join(names)} are (nearly) collinear: the rotation about their line is undetermined")
 
     thr = float(stats.chi2.ppf(1.0 - 2.0 * stats.norm.sf(k_outlier), 3))
+    if tis is not None:
+        # three points with the tissue scale free leave two redundant equations: the fit of the others then
+        # bends pose and scale round any point, and the one left out looks like an outlier (an obese pelvis's
+        # RASI "rejected" at 5.6 sd, the pelvis rotated until RASI sat 128 mm off its bone)
+        min_points = max(min_points, 4)
     keep = list(range(K))
     rejected: dict[str, float] = {}
     while len(keep) > min_points:

@@ -20,7 +20,10 @@ Z right; "lateral" is +Z on the right, -Z on the left):
   (metatarsal bases); TOE: most dorsal vertex over the second ray (anterior 22 %).
 
 Marker centre = surface point + (skin thickness + marker radius) x outward normal
-(normal: mean vertex normal within 6 mm).  The anatomical (bony) markers are
+(normal: mean vertex normal within max(6 mm, skin thickness) of the surface point:
+fat over a prominence smooths it at the scale of its own thickness, so 40 mm of
+tissue over the ASIS lies along the iliac crest's broad normal, not along one
+6 mm facet of the spine's tip, which palpation's few millimetres swing by 30-50 deg).  The anatomical (bony) markers are
 first displaced tangentially by a palpation error and re-projected onto the
 bone (nearest vertex).  Skin markers without a landmark (thigh and shank
 wands, SHN, clusters, gait2392's thigh/shank markers) sit at a fraction of
@@ -155,7 +158,11 @@ class _Standing:
         return self.R[body].T @ np.asarray(v, float)
 
 
-def _normal(mesh, p_local: np.ndarray, radius: float = 0.006) -> np.ndarray:
+#: m, smallest radius over which a bony marker's offset direction is averaged (the marker's own footprint)
+NORMAL_RADIUS_MIN = 0.006
+
+
+def _normal(mesh, p_local: np.ndarray, radius: float = NORMAL_RADIUS_MIN) -> np.ndarray:
     V = np.asarray(mesh.vertices)
     N = np.asarray(mesh.vertex_normals)
     near = np.linalg.norm(V - p_local, axis=1) < radius
@@ -330,8 +337,9 @@ def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int
                 k = int(np.argmin(np.linalg.norm(V - (p_loc + tang), axis=1)))
                 surf = V[k].copy()
                 off = surf - p_loc
-                n = _normal(mesh, surf)
             t = t_of(site, P)
+            # the skin over a prominence follows the bone at the scale of the tissue between them, not a facet's
+            n = _normal(mesh, surf, radius=max(NORMAL_RADIUS_MIN, t))
             placed[label] = PlacedMarker(label, body, surf + (t + r) * n, "landmark", md.landmark or f"{P}{site}",
                                          p_loc, surf, n, t, off)
         elif base in _SKIN:

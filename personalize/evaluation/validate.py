@@ -151,6 +151,9 @@ def run_realistic_validation(n: int, seed: int, out: str | os.PathLike, *, data_
     if data_root is None:
         data_root = Path(__file__).resolve().parents[3] / "shared" / "data"
     specs = draw_realistic_subjects(n, seed, data_root if Path(data_root).is_dir() else None)
+    if console is not None and all(s.anatomy == "analytic" for s in specs):
+        console.print(f"[yellow]warning:[/] no real anatomy under {data_root} (bones/ICL_MRI, bones/LHDL_CT and "
+                      "their reference_models): every subject is analytic; give the real data with --data")
     subjects = _stage_subjects(out, specs, REALISTIC_SPEC)
     batch = run_batch(subjects, inside(out, "results"), job=realistic_validation_job, job_kwargs={"job": job},
                       scheduler=scheduler, workers=workers, progress=progress, console=console)
