@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["constants", "calibration_record", "CALIBRATION_FILE", "coverage", "fit_scale_and_model_error", "fit_model_error",
-           "record_realistic_fit", "record_realistic_check", "CHI2_3_95"]
+           "record_realistic_fit", "record_measured_model_error",
+           "record_realistic_check", "CHI2_3_95"]
 
 CALIBRATION_FILE = Path(__file__).with_name("calibration.json")
 
@@ -162,6 +163,26 @@ def record_realistic_fit(fits: dict, names: dict, benchmark: str, training_dir: 
                 "training_set": train, "fitted": when,
                 "method": "maximum likelihood of the motion centre errors under N(0, C_stated + sd^2 I)",
                 "measured": {k: f[k] for k in ("motion_before", "motion_after", "motion_median_error_mm") if k in f}}
+    _write_record(doc)
+
+
+def record_measured_model_error(fits: dict, names: dict, benchmark: str, training_dir: str) -> None:
+    """Write σ_j of the measured-tissue path (`benchmarks/realistic_calibration.py` fit) into ``calibration.json``.
+
+    fits : joint -> {"model_sd_m", "legs", "subjects", "training_seed", "runnable", statistics ...}
+    names : joint -> (scale constant name, model-error constant name)
+    """
+    doc = json.loads(CALIBRATION_FILE.read_text(encoding="utf-8"))
+    when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    for jn, f in fits.items():
+        train = (f"{f['subjects']} realistic phantom subjects ({f['legs']} legs, pelvic tissue measured in the skin "
+                 f"label), draw_realistic_subjects(seed={f['training_seed']}), runnable={f['runnable']}")
+        doc["constants"][names[jn][1]] = {
+            "value": round(f["model_sd_m"], 5), "units": "m per axis", "benchmark": benchmark, "training_set": train,
+            "fitted": when, "results": training_dir,
+            "method": "maximum likelihood of the MRI errors under N(0, C_stated + sd^2 I), the measured scale kept",
+            "measured": {k: f[k] for k in ("mri_before", "mri_after", "fused_before", "fused_after_offline",
+                                           "mri_median_error_mm") if k in f}}
     _write_record(doc)
 
 

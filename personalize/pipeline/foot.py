@@ -26,7 +26,7 @@ from .virtual_markers import KNEE_STANDING_ROTATION_SD_DEG, knee_axis_pairs
 
 __all__ = ["MRI_ANKLE_AXIS_SD_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE_MEASURED",
            "SUBTALAR_DEFAULT", "estimate_ankle", "estimate_foot_axes", "MRI_ANKLE_MODEL_SD",
-           "MOTION_ANKLE_MODEL_SD"]
+           "MRI_ANKLE_MODEL_SD_MEASURED", "MOTION_ANKLE_MODEL_SD"]
 
 #: scale of the shank-registration ankle axis sd: claimed median 3.5 deg vs actual median 0.75 deg on 24 TRAINING
 #: phantom subjects, with rare gross talus failures of 14-77 deg that carry large claimed sds (calibration.json)
@@ -40,6 +40,9 @@ MRI_ANKLE_CENTRE_COV_SCALE_MEASURED = 0.050
 #: model-error sd (m per axis) added to the scaled MRI ankle centre covariance with prior soft tissue (realistic
 #: phantoms, benchmarks/realistic_calibration.py; calibration.json)
 MRI_ANKLE_MODEL_SD = 0.00851
+#: model-error sd (m per axis) added to the MRI ankle centre covariance with the pelvic tissue measured (realistic
+#: phantoms' analytic subjects, benchmarks/realistic_calibration.py; calibration.json)
+MRI_ANKLE_MODEL_SD_MEASURED = 0.0
 #: model-error sd (m per axis) added to the motion ankle centre's stated covariance (realistic phantoms,
 #: benchmarks/realistic_calibration.py; calibration.json)
 MOTION_ANKLE_MODEL_SD = 0.01347
@@ -69,7 +72,8 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
                                sites={f"{S}ANK": "lateral_malleolus_tip", f"{S}MMA": "medial_malleolus_tip"}
                                if ctx.markers_on_joint_axes else None, tissue_scale=ctx.tissue_scale(est))
     scale = centre_scale(ctx, MRI_ANKLE_CENTRE_COV_SCALE, MRI_ANKLE_CENTRE_COV_SCALE_MEASURED)
-    mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_ANKLE_MODEL_SD))
+    mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(
+        centre_model_error(ctx, MRI_ANKLE_MODEL_SD, MRI_ANKLE_MODEL_SD_MEASURED))
     u, sd, _ = reg.transfer_direction(j_ankle.axis, j_ankle.axis_sd_deg)
     mri_axis = Direction(u, sd * MRI_ANKLE_AXIS_SD_SCALE)
     if f"{S}MMA" in ctx.static and f"{S}ANK" in ctx.static:

@@ -32,7 +32,7 @@ from .joint_estimates import CentreEstimates, JointContext, JointEstimates
 from .motion import (DAVIS_HIP_SD, FUNCTIONAL_HIP_MIN_RANGE_DEG, HARRINGTON_SD, PELVIS_CLUSTER, THIGH_MARKERS,
                      harrington_hip, hip_range_of_motion, motion_hip, pelvis_rear, subject_marker_radius)
 
-__all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD", "MOTION_HIP_MODEL_SD", "fuse_hips", "estimate_hips", "hip_motion_trial"]
+__all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD", "MRI_HIP_MODEL_SD_MEASURED", "MOTION_HIP_MODEL_SD", "fuse_hips", "estimate_hips", "hip_motion_trial"]
 
 #: variance scale of the registration-propagated MRI hip covariance with prior (estimated) soft tissue, with
 #: `MRI_HIP_MODEL_SD`: maximum likelihood of the MRI hip errors of the realistic phantoms (palpated markers, child /
@@ -46,6 +46,9 @@ MRI_HIP_COV_SCALE_MEASURED = 0.094
 #: model-error sd (m per axis) added to the scaled MRI hip covariance with prior soft tissue (realistic phantoms,
 #: benchmarks/realistic_calibration.py; calibration.json)
 MRI_HIP_MODEL_SD = 0.0
+#: model-error sd (m per axis) added to the MRI hip covariance with the pelvic tissue measured (realistic phantoms'
+#: analytic subjects, benchmarks/realistic_calibration.py; calibration.json)
+MRI_HIP_MODEL_SD_MEASURED = 0.0
 #: m per axis, model-error sd added to a regression hip's stated covariance (Davis, Harrington: their published
 #: errors are on the bony landmarks of their own cohorts; maximum likelihood on the realistic phantoms,
 #: benchmarks/realistic_calibration.py; calibration.json)
@@ -171,6 +174,7 @@ def estimate_hips(ctx: JointContext, reg_pelvis, pelvis_axes, est: JointEstimate
             est.notes.append(f"hip {s.upper()}: no functional hip centre ({exc}); {used} used")
     # both hips at once: their MRI estimates share the pelvis registration error
     mri, fused, est.hip_joint = fuse_hips(reg_pelvis, hips_scanner, hip_motion, mri_scale=est.mri_hip_scale,
-                                          model_sd=0.0 if ctx.tissue_measured else MRI_HIP_MODEL_SD)
+                                          model_sd=MRI_HIP_MODEL_SD_MEASURED if ctx.tissue_measured
+                                          else MRI_HIP_MODEL_SD)
     for s in ctx.inputs.sides:
         est.centres.setdefault(s, {})["hip"] = CentreEstimates(mri[s], hip_motion[s], fused[s])

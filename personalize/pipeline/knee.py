@@ -26,7 +26,7 @@ from .pig_uncertainty import pig_axis_sd_deg, pig_centre_propagated
 from .segment_registration import register_with_centre
 from .virtual_markers import STANDING_HIP_ROTATION_SD_DEG, virtual_medial_knee
 
-__all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "MRI_KNEE_MODEL_SD",
+__all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "MRI_KNEE_MODEL_SD", "MRI_KNEE_MODEL_SD_MEASURED",
            "MOTION_KNEE_MODEL_SD",
            "estimate_knee"]
 
@@ -45,11 +45,15 @@ MRI_KNEE_MODEL_SD = 0.00984
 #: model-error sd (m per axis) added to the motion knee centre's stated covariance (realistic phantoms,
 #: benchmarks/realistic_calibration.py; calibration.json)
 MOTION_KNEE_MODEL_SD = 0.00558
+#: model-error sd (m per axis) added to the MRI knee centre covariance with the pelvic tissue measured (realistic
+#: phantoms' analytic subjects, benchmarks/realistic_calibration.py; calibration.json)
+MRI_KNEE_MODEL_SD_MEASURED = 0.0
 
 
-def centre_model_error(ctx: JointContext, sd: float) -> np.ndarray:
-    """The model-error covariance sd² I (m²) of an MRI centre with prior soft tissue; 0 with the tissue measured."""
-    return (0.0 if ctx.tissue_measured else float(sd) ** 2) * np.eye(3)
+def centre_model_error(ctx: JointContext, sd: float, sd_measured: float) -> np.ndarray:
+    """The model-error covariance σ² I (m²) of an MRI centre: σ = `sd` with prior soft tissue, `sd_measured` with
+    the pelvic tissue measured."""
+    return float(sd_measured if ctx.tissue_measured else sd) ** 2 * np.eye(3)
 
 
 def centre_scale(ctx: JointContext, prior: float, measured: float) -> float:
@@ -114,7 +118,8 @@ def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
                                axis=ctx.joint_axis(j_knee), fallback=[(f"{kind}_knee_centre", j_knee.centre, pig)],
                                tissue_scale=ctx.tissue_scale(est))
     scale = centre_scale(ctx, MRI_KNEE_CENTRE_COV_SCALE, MRI_KNEE_CENTRE_COV_SCALE_MEASURED)
-    mri = reg.transfer_estimate(j_knee.centre).scaled(scale).inflated(centre_model_error(ctx, MRI_KNEE_MODEL_SD))
+    mri = reg.transfer_estimate(j_knee.centre).scaled(scale).inflated(
+        centre_model_error(ctx, MRI_KNEE_MODEL_SD, MRI_KNEE_MODEL_SD_MEASURED))
     u, sd, _ = reg.transfer_direction(j_knee.axis, j_knee.axis_sd_deg)
     mri_axis = Direction(u, sd * MRI_KNEE_AXIS_SD_SCALE)
     ctx.say(f"knee {S}: functional axis")
