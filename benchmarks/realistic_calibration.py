@@ -191,14 +191,8 @@ def fit(folder: Path, results: str = "results") -> dict:
     """(s_j, σ_j) per joint by maximum likelihood on the training legs (prior soft tissue), and their coverage."""
     from personalize.pipeline.calibration import coverage, fit_model_error, fit_scale_and_model_error
 
-    rows = [r for r in legs(folder, results) if not r["measured"]]
-    meta = json.loads((folder / f"{results}.json").read_text())
     out = {}
-    for jn in JOINTS:
-        rs = [r for r in rows if r["joint"] == jn]
-        if len(rs) < 4:
-            continue
-        err = np.array([r["mri"] - r["truth"] for r in rs])
+    for jn, rs, err, common in _joint_legs(folder, results, measured=False):
         raw = np.array([_raw_cov(r) for r in rs])
         s, sd = fit_scale_and_model_error(err, raw)
         new_mri = raw * s + sd ** 2 * np.eye(3)
@@ -215,19 +209,32 @@ def fit(folder: Path, results: str = "results") -> dict:
             f = _fuse(jn, [_gauss(r["mri"], C), _gauss(r["motion"], Cm)])
             fe.append(f.mean - r["truth"])
             fc.append(f.cov)
-        out[jn] = {"scale": s, "model_sd_m": sd, "legs": len(rs), "subjects": len({r["subject"] for r in rs}),
-                   "training_seed": meta["seed"], "runnable": meta["runnable"],
-                   "mri_before": coverage(err, np.array([r["mri_cov"] for r in rs])),
-                   "mri_after": coverage(err, new_mri),
-                   "fused_before": coverage(np.array([r["fused"] - r["truth"] for r in rs]),
-                                            np.array([r["fused_cov"] for r in rs])),
+        out[jn] = {**common, "scale": s, "model_sd_m": sd, "mri_after": coverage(err, new_mri),
                    "fused_after_offline": coverage(np.array(fe), np.array(fc)),
                    "motion_before": coverage(merr, np.array([r["motion_cov"] for r in rs])),
                    "motion_error_sd_m": motion_sd, "motion_model_sd_m": msd, "motion_after": coverage(merr, mnew),
-
-                   "motion_median_error_mm": float(np.median(np.linalg.norm(merr, axis=1)) * 1e3),
-                   "mri_median_error_mm": float(np.median(np.linalg.norm(err, axis=1)) * 1e3)}
+                   "motion_median_error_mm": float(np.median(np.linalg.norm(merr, axis=1)) * 1e3)}
     return out
+
+
+def _joint_legs(folder: Path, results: str, measured: bool):
+    """Per joint with at least 4 training legs of the tissue path `measured`: (joint, legs, MRI errors (L, 3) m,
+    the statistics every fit reports: counts, training set, stated coverage, MRI median error)."""
+    from personalize.pipeline.calibration import coverage
+
+    rows = [r for r in legs(folder, results) if r["measured"] == measured]
+    meta = json.loads((folder / f"{results}.json").read_text())
+    for jn in JOINTS:
+        rs = [r for r in rows if r["joint"] == jn]
+        if len(rs) < 4:
+            continue
+        err = np.array([r["mri"] - r["truth"] for r in rs])
+        yield jn, rs, err, {
+            "legs": len(rs), "subjects": len({r["subject"] for r in rs}), "training_seed": meta["seed"],
+            "runnable": meta["runnable"], "mri_before": coverage(err, np.array([r["mri_cov"] for r in rs])),
+            "fused_before": coverage(np.array([r["fused"] - r["truth"] for r in rs]),
+                                     np.array([r["fused_cov"] for r in rs])),
+            "mri_median_error_mm": float(np.median(np.linalg.norm(err, axis=1)) * 1e3)}
 
 
 def fit_measured(folder: Path, results: str = "results") -> dict:
@@ -235,26 +242,15 @@ def fit_measured(folder: Path, results: str = "results") -> dict:
     (`fit_model_error`, the measured scales kept), and the coverage before and after."""
     from personalize.pipeline.calibration import coverage, fit_model_error
 
-    rows = [r for r in legs(folder, results) if r["measured"]]
-    meta = json.loads((folder / f"{results}.json").read_text())
     out = {}
-    for jn in JOINTS:
-        rs = [r for r in rows if r["joint"] == jn]
-        if len(rs) < 4:
-            continue
-        err = np.array([r["mri"] - r["truth"] for r in rs])
+    for jn, rs, err, common in _joint_legs(folder, results, measured=True):
         raw = np.array([r["mri_cov"] - r["model_sd"] ** 2 * np.eye(3) for r in rs])
         sd = fit_model_error(err, raw)
         new = raw + sd ** 2 * np.eye(3)
         fused = [_fuse(jn, [_gauss(r["mri"], C), _gauss(r["motion"], r["motion_cov"])]) for r, C in zip(rs, new)]
-        out[jn] = {"model_sd_m": sd, "legs": len(rs), "subjects": len({r["subject"] for r in rs}),
-                   "training_seed": meta["seed"], "runnable": meta["runnable"],
-                   "mri_before": coverage(err, np.array([r["mri_cov"] for r in rs])), "mri_after": coverage(err, new),
-                   "fused_before": coverage(np.array([r["fused"] - r["truth"] for r in rs]),
-                                            np.array([r["fused_cov"] for r in rs])),
+        out[jn] = {**common, "model_sd_m": sd, "mri_after": coverage(err, new),
                    "fused_after_offline": coverage(np.array([f.mean - r["truth"] for f, r in zip(fused, rs)]),
-                                                   np.array([f.cov for f in fused])),
-                   "mri_median_error_mm": float(np.median(np.linalg.norm(err, axis=1)) * 1e3)}
+                                                   np.array([f.cov for f in fused]))}
     return out
 
 
@@ -330,9 +326,7 @@ def main(argv=None) -> int:
         print(json.dumps(report(args.out, args.results), indent=1))
         return 0
     if args.cmd == "fit":
-        from personalize.pipeline.calibration import record_realistic_fit
-
-        from personalize.pipeline.calibration import record_measured_model_error
+        from personalize.pipeline.calibration import record_measured_model_error, record_realistic_fit
 
         res, meas = {}, {}
         for folder in args.train:

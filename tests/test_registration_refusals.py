@@ -96,7 +96,8 @@ def test_knee_marker_on_the_shank_is_refused_or_dropped(icl, tmp_path, capsys):
 
 
 def test_markers_of_another_subject_are_refused(icl, shared_data, tmp_path, capsys):
-    """The ICL_MRI bones with the trials and subject.json of a LHDL_CT phantom: the pelvis fails its gate."""
+    """The ICL_MRI bones with the trials and subject.json of a LHDL_CT phantom: each segment fits alone (same size,
+    pelvis p = 7e-4) but all of them together fail the gate (`registration.combined_gate_statistic`)."""
     other = _write(shared_data, tmp_path, "LHDL_CT")
     bad = tmp_path / "mixed"
     bad.mkdir()

@@ -136,33 +136,45 @@ def _write_record(doc: dict) -> None:
     write_text(CALIBRATION_FILE, json.dumps(doc, indent=1, ensure_ascii=False) + "\n")
 
 
+_FIT_STATS = ("mri_before", "mri_after", "fused_before", "fused_after_offline", "mri_median_error_mm")
+
+
+def _training_set(f: dict, tissue: str) -> str:
+    return (f"{f['subjects']} realistic phantom subjects ({f['legs']} legs, {tissue}), "
+            f"draw_realistic_subjects(seed={f['training_seed']}), runnable={f['runnable']}")
+
+
+def _sd_entry(value: float, benchmark: str, train: str, when: str, training_dir: str, method: str,
+              measured: dict) -> dict:
+    """One model-error sd's record in ``calibration.json``."""
+    return {"value": round(value, 5), "units": "m per axis", "benchmark": benchmark, "training_set": train,
+            "fitted": when, "results": training_dir, "method": method, "measured": measured}
+
+
 def record_realistic_fit(fits: dict, names: dict, benchmark: str, training_dir: str) -> None:
     """Write (s_j, σ_j) of `benchmarks/realistic_calibration.py` fit into ``calibration.json`` with their provenance.
 
     fits : joint -> {"scale", "model_sd_m", "legs", "subjects", "training_seed", "runnable", statistics ...}
-    names : joint -> (scale constant name, model-error constant name)
+    names : joint -> (scale constant name, model-error constant name[, motion model-error constant name])
     """
     doc = json.loads(CALIBRATION_FILE.read_text(encoding="utf-8"))
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     for jn, f in fits.items():
         sname, mname = names[jn][:2]
-        train = (f"{f['subjects']} realistic phantom subjects ({f['legs']} legs, prior soft tissue), "
-                 f"draw_realistic_subjects(seed={f['training_seed']}), runnable={f['runnable']}")
-        stats = {k: f[k] for k in ("mri_before", "mri_after", "fused_before", "fused_after_offline",
-                                   "mri_median_error_mm") if k in f}
+        train = _training_set(f, "prior soft tissue")
+        stats = {k: f[k] for k in _FIT_STATS if k in f}
         doc["constants"][sname] = {**doc["constants"].get(sname, {}), "value": round(f["scale"], 4),
                                    "benchmark": benchmark, "training_set": train, "measured": stats,
                                    "method": "maximum likelihood of the MRI errors under N(0, s C_reg + sd^2 I)",
                                    "fitted": when, "results": training_dir}
-        doc["constants"][mname] = {"value": round(f["model_sd_m"], 5), "units": "m per axis", "benchmark": benchmark,
-                                   "training_set": train, "fitted": when,
-                                   "note": "model-error sd added to the scaled MRI centre covariance (prior soft tissue)"}
+        doc["constants"][mname] = _sd_entry(f["model_sd_m"], benchmark, train, when, training_dir,
+                                            "with the scale, maximum likelihood of the MRI errors under "
+                                            "N(0, s C_reg + sd^2 I) (prior soft tissue)", stats)
         if len(names[jn]) > 2 and "motion_model_sd_m" in f:
-            doc["constants"][names[jn][2]] = {
-                "value": round(f["motion_model_sd_m"], 5), "units": "m per axis", "benchmark": benchmark,
-                "training_set": train, "fitted": when,
-                "method": "maximum likelihood of the motion centre errors under N(0, C_stated + sd^2 I)",
-                "measured": {k: f[k] for k in ("motion_before", "motion_after", "motion_median_error_mm") if k in f}}
+            doc["constants"][names[jn][2]] = _sd_entry(
+                f["motion_model_sd_m"], benchmark, train, when, training_dir,
+                "maximum likelihood of the motion centre errors under N(0, C_stated + sd^2 I)",
+                {k: f[k] for k in ("motion_before", "motion_after", "motion_median_error_mm") if k in f})
     _write_record(doc)
 
 
@@ -175,14 +187,10 @@ def record_measured_model_error(fits: dict, names: dict, benchmark: str, trainin
     doc = json.loads(CALIBRATION_FILE.read_text(encoding="utf-8"))
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     for jn, f in fits.items():
-        train = (f"{f['subjects']} realistic phantom subjects ({f['legs']} legs, pelvic tissue measured in the skin "
-                 f"label), draw_realistic_subjects(seed={f['training_seed']}), runnable={f['runnable']}")
-        doc["constants"][names[jn][1]] = {
-            "value": round(f["model_sd_m"], 5), "units": "m per axis", "benchmark": benchmark, "training_set": train,
-            "fitted": when, "results": training_dir,
-            "method": "maximum likelihood of the MRI errors under N(0, C_stated + sd^2 I), the measured scale kept",
-            "measured": {k: f[k] for k in ("mri_before", "mri_after", "fused_before", "fused_after_offline",
-                                           "mri_median_error_mm") if k in f}}
+        doc["constants"][names[jn][1]] = _sd_entry(
+            f["model_sd_m"], benchmark, _training_set(f, "pelvic tissue measured in the skin label"), when,
+            training_dir, "maximum likelihood of the MRI errors under N(0, C_stated + sd^2 I), the measured scale kept",
+            {k: f[k] for k in _FIT_STATS if k in f})
     _write_record(doc)
 
 

@@ -35,17 +35,17 @@ MRI_ANKLE_AXIS_SD_SCALE = 0.51
 #: likelihood on the realistic phantoms (benchmarks/realistic_calibration.py, 26 legs of 13 real-anatomy subjects of
 #: seed 1000, every marker set and lab); with it
 #: measured: analytic phantoms, mean Mahalanobis d² = 3 (benchmarks/knee_ankle_calibration.py; calibration.json)
-MRI_ANKLE_CENTRE_COV_SCALE = 0.3128
+MRI_ANKLE_CENTRE_COV_SCALE = 0.1
 MRI_ANKLE_CENTRE_COV_SCALE_MEASURED = 0.050
 #: model-error sd (m per axis) added to the scaled MRI ankle centre covariance with prior soft tissue (realistic
 #: phantoms, benchmarks/realistic_calibration.py; calibration.json)
-MRI_ANKLE_MODEL_SD = 0.00851
+MRI_ANKLE_MODEL_SD = 0.00651
 #: model-error sd (m per axis) added to the MRI ankle centre covariance with the pelvic tissue measured (realistic
 #: phantoms' analytic subjects, benchmarks/realistic_calibration.py; calibration.json)
-MRI_ANKLE_MODEL_SD_MEASURED = 0.0
+MRI_ANKLE_MODEL_SD_MEASURED = 0.00025
 #: model-error sd (m per axis) added to the motion ankle centre's stated covariance (realistic phantoms,
 #: benchmarks/realistic_calibration.py; calibration.json)
-MOTION_ANKLE_MODEL_SD = 0.01347
+MOTION_ANKLE_MODEL_SD = 0.01492
 #: default subtalar axis (Inman 1976): 42 deg up from the foot's long axis, 23 deg medial, in the static lab
 SUBTALAR_DEFAULT = (42.0, 23.0)
 

@@ -37,17 +37,17 @@ MRI_KNEE_AXIS_SD_SCALE = 0.107
 #: likelihood on the realistic phantoms (benchmarks/realistic_calibration.py, 26 legs of
 #: 13 real-anatomy subjects of seed 1000, every marker set and lab; the optimum below the 0.1 floor); with the pelvic tissue measured (12 analytic subjects with the skin label, 24 legs):
 #: mean Mahalanobis d² = 3 (benchmarks/knee_ankle_calibration.py; calibration.json)
-MRI_KNEE_CENTRE_COV_SCALE = 0.1
+MRI_KNEE_CENTRE_COV_SCALE = 0.7465
 MRI_KNEE_CENTRE_COV_SCALE_MEASURED = 0.017
 #: model-error sd (m per axis) added to the scaled MRI knee centre covariance with prior soft tissue (realistic
 #: phantoms, benchmarks/realistic_calibration.py; calibration.json)
-MRI_KNEE_MODEL_SD = 0.00984
+MRI_KNEE_MODEL_SD = 0.00428
 #: model-error sd (m per axis) added to the motion knee centre's stated covariance (realistic phantoms,
 #: benchmarks/realistic_calibration.py; calibration.json)
-MOTION_KNEE_MODEL_SD = 0.00558
+MOTION_KNEE_MODEL_SD = 0.0
 #: model-error sd (m per axis) added to the MRI knee centre covariance with the pelvic tissue measured (realistic
 #: phantoms' analytic subjects, benchmarks/realistic_calibration.py; calibration.json)
-MRI_KNEE_MODEL_SD_MEASURED = 0.0
+MRI_KNEE_MODEL_SD_MEASURED = 0.00061
 
 
 def centre_model_error(ctx: JointContext, sd: float, sd_measured: float) -> np.ndarray:
