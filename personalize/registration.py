@@ -54,7 +54,7 @@ from lowerlimb.geometry import DEFAULT_MARKER_RADIUS, kabsch, skew
 
 __all__ = [
     "Registration", "register_landmarks", "static_marker_positions", "express_in_frame", "SKIN_THICKNESS",
-    "skin_prior", "scaled_skin_prior", "GATE_P", "gate_statistic", "combined_gate_statistic", "MARKER_PLACEMENT_SD", "SURFACE_NORMAL_SD_DEG", "PALPATION_SD",
+    "skin_prior", "scaled_skin_prior", "GATE_P", "gate_statistic", "MARKER_PLACEMENT_SD", "SURFACE_NORMAL_SD_DEG", "PALPATION_SD",
     "PALPATION_SD_BY_SITE", "palpation_sd",
 ]
 
@@ -68,9 +68,10 @@ MARKER_PLACEMENT_SD = 0.003
 #: person's.  Phantom subjects registered to their own bones: p >= 0.96 on every segment (3 seeds); a +3 sd
 #: (54 mm) ASIS tissue with a bone-only label volume (the prior is then wrong): pelvis p = 0.0017; the pelvis
 #: of another phantom: p = 7e-22, 2e-17, 2e-10 (statures apart) but 0.77-0.87 for two subjects of one size.
-#: Real anatomy (`phantoms.real_subject`, Plug-in-Gait, adult): the ICL_MRI bones with a LHDL_CT subject's
-#: markers pass every segment alone (pelvis p = 7e-4, calcaneus 1e-4) but all seven together (`combined_gate_statistic`)
-#: give chi2 = 98 on 30 dof, p = 4e-9; each set's own bones give 15 and 23 on 30 dof (p = 0.99, 0.83).
+#: Real anatomy (`phantoms.real_subject`, Plug-in-Gait): the ICL_MRI bones scaled by 0.85 with a LHDL_CT
+#: subject's markers, pelvis p = 2e-7; unscaled (two adults of one size) p = 7e-4, which no gate can refuse:
+#: the sum of all seven segments' chi2 gives p = 4e-9 there but 7e-7 for a child's own ICL_MRI bones (seed 0,
+#: subject 011: its feet registrations' chi2 exceed their dof), so a same-size wrong subject is not detected.
 GATE_P = 1e-6
 #: angular sd (deg) of a normal taken from the bone surface
 SURFACE_NORMAL_SD_DEG = 10.0
@@ -261,19 +262,6 @@ def gate_statistic(reg: Registration) -> tuple[float, int, float]:
     dof = int(reg.dof + 3 * len(rej))
     p = float(stats.chi2.sf(chi2, dof)) if dof > 0 else 1.0
     return chi2, dof, p
-
-
-def combined_gate_statistic(regs) -> tuple[float, int, float]:
-    """`gate_statistic` of several registrations taken together: Σ χ²_all on Σ dof, and its p-value.
-
-    The segments of one subject are registered independently, so their χ² add.  One segment of another person
-    can fit alone (a pelvis of the same size: p = 7e-4), but every segment of another person together does not
-    (p = 4e-9); a subject's own bones sum to about their dof.
-    """
-    stats_ = [gate_statistic(r) for r in regs]
-    chi2 = float(sum(c for c, _, _ in stats_))
-    dof = int(sum(d for _, d, _ in stats_))
-    return chi2, dof, (float(stats.chi2.sf(chi2, dof)) if dof > 0 else 1.0)
 
 
 def express_in_frame(point, cov, origin, rotation, origin_cov=None, rotation_cov=None):

@@ -3,7 +3,7 @@ dropped, never published with joints far away (issue #17, [R1]).
 
 The subject: the ICL_MRI bones of ../shared/data as a mesh folder with its Plug-in-Gait markers
 (`phantoms.real_subject.write_real_subject`: 20-frame static, one gait trial, no functional trial, Z-up lab).
-Broken copies: the markers of another person (a LHDL_CT phantom's trials and subject.json), the right knee
+Broken copies: the markers of another person (a LHDL_CT phantom's trials and subject.json, the bones scaled by 0.85), the right knee
 and ankle markers swapped (RKNE's trajectory under RANK and back), the right femur replaced by its mirror
 image (a left femur in its place).
 """
@@ -96,17 +96,25 @@ def test_knee_marker_on_the_shank_is_refused_or_dropped(icl, tmp_path, capsys):
 
 
 def test_markers_of_another_subject_are_refused(icl, shared_data, tmp_path, capsys):
-    """The ICL_MRI bones with the trials and subject.json of a LHDL_CT phantom: each segment fits alone (same size,
-    pelvis p = 7e-4) but all of them together fail the gate (`registration.combined_gate_statistic`)."""
+    """The ICL_MRI bones scaled by 0.85 (a person 15 % shorter) with the trials and subject.json of a LHDL_CT
+    phantom: the pelvis fails its gate (p = 2e-7).  Unscaled, the two adults are of one size and every segment
+    passes (pelvis p = 7e-4): `registration.GATE_P` documents why that case is not refused."""
+    import trimesh
+
     other = _write(shared_data, tmp_path, "LHDL_CT")
     bad = tmp_path / "mixed"
     bad.mkdir()
     shutil.copytree(icl / "bones", bad / "bones")
+    meshes = {f: trimesh.load(f, process=False) for f in sorted((bad / "bones").glob("*.ply"))}
+    centre = np.vstack([m.vertices for m in meshes.values()]).mean(axis=0)
+    for f, m in meshes.items():
+        m.vertices = centre + 0.85 * (m.vertices - centre)
+        m.export(f)
     for name in ("static.c3d", "gait_01.c3d", "subject.json", "markers.json"):
         shutil.copy(other / name, bad / name)
     code, last, summary = _run(bad, tmp_path / "out", capsys)
     assert code == 2 and summary is None, last
-    assert last.startswith("error:") and "chi-square" in last
+    assert last.startswith("error:") and "pelvis registration" in last and "chi-square" in last
 
 
 def test_motion_only_replaces_the_fused_estimate():

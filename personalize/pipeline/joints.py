@@ -19,7 +19,7 @@ from lowerlimb.errors import InputError
 
 from ..fusion import fuse_axis
 from ..marker_registration import register_segments
-from ..registration import GATE_P, combined_gate_statistic, gate_statistic, static_marker_positions
+from ..registration import GATE_P, gate_statistic, static_marker_positions
 from ..skin import estimated_skin
 from .foot import estimate_ankle, estimate_foot_axes
 from .hip import MRI_HIP_COV_SCALE, MRI_HIP_COV_SCALE_MEASURED, estimate_hips
@@ -235,23 +235,16 @@ def note_inconsistencies(est: JointEstimates, p_min: float = 0.01) -> None:
 
 
 def gate_registrations(inputs: SubjectInputs, est: JointEstimates, say: Callable[[str], None] | None = None) -> None:
-    """Refuse the subject when the pelvis registration fails its chi-square gate, or the segments that pass
-    theirs fail it together (`registration.combined_gate_statistic`): the MRI bones are another person's.  Drop
-    the MRI source of any other segment failing its own gate (`gate_segment`) not already dropped.
+    """Refuse the subject when the pelvis registration fails its chi-square gate (the MRI bones are another
+    person's); drop the MRI source of any other segment failing it (`gate_segment`) not already dropped.
 
     Raises
     ------
-    InputError : naming the bones, the chi-square and p-value
+    InputError : naming the bones, the pelvis' chi-square and p-value
     """
     ok, what = passes_gate(est.registrations["pelvis"])
     if not ok:
         raise InputError(inputs.bones, what + ": the bones and the markers are not of the same person?")
-    passed = [n for n, r in est.registrations.items() if n not in est.mri_dropped and passes_gate(r)[0]]
-    chi2, dof, p = combined_gate_statistic([est.registrations[n] for n in passed])
-    if p < GATE_P:
-        raise InputError(inputs.bones, f"the registrations of {', '.join(passed)} to the static markers fail their "
-                                       f"chi-square gate together (chi2 = {chi2:.1f} on {dof} dof, p = {p:.1g} < "
-                                       f"{GATE_P:g}): the bones and the markers are not of the same person?")
     for name in est.registrations:
         if name != "pelvis":
             gate_segment(est, name, say)
