@@ -36,7 +36,7 @@ __all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD"
 
 #: variance scale of the registration-propagated MRI hip covariance with prior (estimated) soft tissue, with
 #: `MRI_HIP_MODEL_SD`: maximum likelihood of the MRI hip errors of the realistic phantoms (palpated markers, child /
-#: adult / obese tissue; benchmarks/realistic_calibration.py, 26 legs of 13 real-anatomy subjects of seed 1000,
+#: adult / obese tissue; benchmarks/realistic_calibration.py, 32 legs of 16 real-anatomy subjects of seed 1000,
 #: every marker set and lab; calibration.json)
 MRI_HIP_COV_SCALE = 1.5792
 #: the same scale with the tissue under all four pelvic markers measured in the MRI's body label (calibration.json

@@ -34,8 +34,9 @@ __all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENT
 #: phantom subjects (their knee markers sit exactly on the flexion axis; calibration.json)
 MRI_KNEE_AXIS_SD_SCALE = 0.107
 #: variance scale of the registered MRI knee centre: prior pelvic tissue, with `MRI_KNEE_MODEL_SD`, maximum
-#: likelihood on the realistic phantoms (benchmarks/realistic_calibration.py, 26 legs of
-#: 13 real-anatomy subjects of seed 1000, every marker set and lab; the optimum below the 0.1 floor); with the pelvic tissue measured (12 analytic subjects with the skin label, 24 legs):
+#: likelihood on the realistic phantoms (benchmarks/realistic_calibration.py, 32 legs of
+#: 16 real-anatomy subjects of seed 1000, every marker set and lab); with the pelvic tissue measured (12 analytic
+#: subjects with the skin label, 24 legs):
 #: mean Mahalanobis d² = 3 (benchmarks/knee_ankle_calibration.py; calibration.json)
 MRI_KNEE_CENTRE_COV_SCALE = 0.7465
 MRI_KNEE_CENTRE_COV_SCALE_MEASURED = 0.017
