@@ -90,11 +90,6 @@ def run(n: int, seed: int, out: Path, runnable: str, data_root: Path, real_only:
     from personalize.pipeline import run_subject
     from personalize.pipeline.calibration import constants
 
-    from personalize.pipeline import model_checks
-
-    # the covariances calibrated here are the estimators', whatever the publication gate then decides: a subject
-    # the model check refuses still gives its legs (else the training set keeps only the legs the gate likes)
-    model_checks.check_model = lambda *a, **k: None
     out.mkdir(parents=True, exist_ok=True)
     status = {}
     t0 = time.time()
@@ -112,7 +107,9 @@ def run(n: int, seed: int, out: Path, runnable: str, data_root: Path, real_only:
               f"{spec.lab} {spec.walk} {spec.tissue}", flush=True)
         try:
             ensure_realistic_subject(d)
-            run_subject(d, res, report=False, overwrite=True)
+            # the covariances calibrated here are the estimators', whatever the publication gate decides: a subject
+            # the model check refuses still gives its legs (else the training set keeps only the legs the gate likes)
+            run_subject(d, res, report=False, overwrite=True, model_check=False)
             status[spec.subject] = "ok"
         except (InputError, FitError) as exc:
             status[spec.subject] = f"refused: {exc}"

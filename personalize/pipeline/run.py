@@ -17,7 +17,7 @@ __all__ = ["run_subject", "read_subject_bones", "build_model"]
 
 
 def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[[str], None] | None = None,
-                report: bool = True, overwrite: bool = False, marker_set=None) -> dict:
+                report: bool = True, overwrite: bool = False, marker_set=None, model_check: bool = True) -> dict:
     """Run the whole pipeline on one subject folder; outputs are staged into `out`.
 
     Parameters
@@ -29,6 +29,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     overwrite : replace a non-empty `out` whole (else it is refused before any work)
     marker_set : preset name, markers.json path or `MarkerSet` for a folder without ``markers.json``
         (default: the preset the static trial's labels fit; `personalize.pipeline.markers`)
+    model_check : refuse a model that fails `model_checks.check_model` (off only for calibration studies, which
+        need the estimates of every subject whatever the publication gate decides)
 
     Returns
     -------
@@ -46,7 +48,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
 
     check_output_dir(out, inputs=[subject_dir], overwrite=overwrite)
     try:
-        return _run_subject(subject_dir, out, progress=progress, report=report, marker_set=marker_set)
+        return _run_subject(subject_dir, out, progress=progress, report=report, marker_set=marker_set,
+                            model_check=model_check)
     except (InputError, FitError) as exc:
         if report:
             write_refusal_report(Path(out), subject_dir, exc)
@@ -66,7 +69,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
         raise
 
 
-def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker_set=None) -> dict:
+def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker_set=None,
+                 model_check: bool = True) -> dict:
     """`run_subject` without the refusal report."""
     from ..bone_set import write_bone_files
     from ..evaluation.truth import chain_angle_errors, compare_with_truth, truth_in_static_lab
@@ -113,8 +117,10 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     say("checking the model against the bones")
     ms = inputs.marker_set
     bony = frozenset(k for k, v in ms.markers.items() if v.landmark) if ms is not None else frozenset()
-    check_model(pm, meshes_lab, inputs.folder, {**prior_tissue(est, ms, [m.name for m in pm.model.markers]), **(skin or {})},
-                bone_segment_lengths(joints, inputs.sides), bony)
+    if model_check:
+        check_model(pm, meshes_lab, inputs.folder,
+                    {**prior_tissue(est, ms, [m.name for m in pm.model.markers]), **(skin or {})},
+                    bone_segment_lengths(joints, inputs.sides), bony)
     truth = truth_in_static_lab(inputs)
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)
