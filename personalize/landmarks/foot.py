@@ -74,9 +74,16 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     L = float(q.max() - q.min())
     back = q < q.min() + 0.25 * L
     front = q > q.max() - 0.25 * L
-    hb = float((A[back] @ ((V[back] - c) @ up)) / A[back].sum())
-    hf = float((A[front] @ ((V[front] - c) @ up)) / A[front].sum())
-    if hf > hb:
+    if talus is not None:
+        # the talus sits over the hind foot (its centroid at 25-30 % of the foot's length from the heel on
+        # ICL-MRI, LHDL-CT and both TLEM2-MRI feet); the height rule below took ICL-MRI's toes for its heel
+        qt = float(((talus.areas @ talus.vertices) / talus.areas.sum() - c) @ fwd)
+        flip = qt > 0.5 * (q.min() + q.max())
+    else:
+        hb = float((A[back] @ ((V[back] - c) @ up)) / A[back].sum())
+        hf = float((A[front] @ ((V[front] - c) @ up)) / A[front].sum())
+        flip = hf > hb
+    if flip:
         fwd = -fwd
         q = -q
         back, front = front, back

@@ -22,7 +22,7 @@ from personalize.io import LabelVolume, is_label_volume_path, read_label_volume,
 from personalize.io.units import PLAUSIBLE_EXTENT_M
 
 from .extraction import decimate, decimation_message, extract_surface
-from .masks import clean_mask, split_fibula
+from .masks import BONE_PIECE_MIN_VOLUME, clean_mask, split_fibula
 from .sampling import PointCloud, point_cloud
 
 __all__ = ["BoneSurface", "BoneSurfaces", "surfaces_from_labels", "load_bones"]
@@ -89,6 +89,11 @@ class BoneSurfaces(dict):
         self.rejected = dict(rejected or {})
         self.notes = list(notes or [])
 
+
+
+#: labels that hold several bones (`personalize.surfaces.masks.BONE_PIECE_MIN_VOLUME`): the foot without its
+#: talus, the phalanges, a whole foot
+MULTI_BONE_LABELS = ("calcn_", "toes_", "foot_")
 
 
 def _bone_boxes(labels: np.ndarray, label_values: list[int], slab: int = 16,
@@ -194,7 +199,9 @@ def surfaces_from_labels(volume: LabelVolume, *, bones: list[str] | None = None,
         sl = boxes[label]
         say(f"{bone}: surfacing label {label}")
         crop = volume.labels[sl] == label
-        mask, rep = clean_mask(crop, keep_fraction, spacing=volume.spacing_m)
+        several = bone.startswith(MULTI_BONE_LABELS)
+        mask, rep = clean_mask(crop, keep_fraction, spacing=volume.spacing_m,
+                               min_piece_volume=BONE_PIECE_MIN_VOLUME if several else None)
         start = np.array([s.start for s in sl], float)
         aff = volume.affine_m.copy()
         aff[:3, 3] = aff[:3, :3] @ start + aff[:3, 3]

@@ -5,7 +5,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 __all__ = ["clean_mask", "split_fibula", "PHYSIS_GAP", "EPIPHYSIS_MIN_FRACTION", "EPIPHYSIS_MIN_CONTACT",
-           "FIBULA_MAX_EROSION", "FIBULA_MIN_FRACTION", "FIBULA_MIN_LENGTH"]
+           "BONE_PIECE_MIN_VOLUME", "FIBULA_MAX_EROSION", "FIBULA_MIN_FRACTION", "FIBULA_MIN_LENGTH"]
 
 
 def _fill_cavities(mask: np.ndarray) -> np.ndarray:
@@ -35,10 +35,16 @@ EPIPHYSIS_MIN_FRACTION = 0.005
 #: (a growth plate spans the bone's cross-section; a fibula labelled with its tibia
 #: touches it only at the two tibiofibular joints)
 EPIPHYSIS_MIN_CONTACT = 0.1
+#: in a label that holds several bones (a foot's calcn: calcaneus, cuboid, navicular, cuneiforms and metatarsals;
+#: the phalanges), a piece of at least this volume (m³) is one of those bones, separated from the others by its
+#: joint space, and kept: ICL-MRI's metatarsals are 5.7 cm³ (a child's about 2), segmentation noise and
+#: sesamoids 0.02-0.05 cm³.  Removing them as islands took the fifth metatarsal head, and the D5M landmark on
+#: it moved 61 mm back onto the cuboid.
+BONE_PIECE_MIN_VOLUME = 0.5e-6
 
 
 def clean_mask(mask: np.ndarray, keep_fraction: float = 0.1, spacing=None,
-               physis_gap: float = PHYSIS_GAP) -> tuple[np.ndarray, dict]:
+               physis_gap: float = PHYSIS_GAP, min_piece_volume: float | None = None) -> tuple[np.ndarray, dict]:
     r"""Keep the largest 26-connected component of a bone mask, join its epiphyses, fill its cavities.
 
     Components with at least `keep_fraction` of the largest one's voxels are kept
@@ -52,6 +58,8 @@ def clean_mask(mask: np.ndarray, keep_fraction: float = 0.1, spacing=None,
     distances in metres) whose nearest main and piece voxels lie on opposite
     sides (angle over 135 degrees: inside the plate, not beside its rim) are
     set, so the bone is surfaced as one rigid body.
+    With `min_piece_volume` (m³, `spacing` given), for a label of several bones
+    (`BONE_PIECE_MIN_VOLUME`), every piece at least that large is kept.
     Other small islands are segmentation noise and removed.
 
     Returns
@@ -67,6 +75,8 @@ def clean_mask(mask: np.ndarray, keep_fraction: float = 0.1, spacing=None,
     if n > 1:
         sizes = np.bincount(lab.ravel())[1:]
         keep = sizes >= keep_fraction * sizes.max()
+        if min_piece_volume is not None and spacing is not None:
+            keep |= sizes * float(np.prod(spacing)) >= min_piece_volume
         main = int(np.argmax(sizes)) + 1
         bridges = np.zeros(mask.shape, bool)
         if spacing is not None:
