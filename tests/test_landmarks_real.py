@@ -129,10 +129,11 @@ def test_icl_talar_dome_does_not_depend_on_the_scan_ankle_angle(shared_data, mon
 
     move, ang = spread((-15, 0, 15))
     assert move < 0.2 and ang < 0.2, (move, ang)
-    # the scan-pose contact (the previous default) is what this guards against
+    # the scan-pose contact (the previous default) is what this guards against: its dome centre moves 3.2 mm
+    # (its axis 0.4 deg: the seeds of `DOME_SEED_ANGLES` steady the axis, not the contact's extent)
     monkeypatch.setattr(talus_mod, "DOME_NEUTRAL_POSE", False)
     move_scan, ang_scan = spread((-15, 0, 15))
-    assert move_scan > 1.0 and ang_scan > 1.0, (move_scan, ang_scan)
+    assert move_scan > 1.0 and move_scan > 10 * move, (move_scan, ang_scan)
 
 
 def test_icl_decimated_mesh_gives_the_same_joints(shared_data, monkeypatch):
