@@ -91,6 +91,11 @@ _ON_LANDMARK = {"ASI": "ASI", "PSI": "PSI", "TRO": "TRO", "KNE": "KNE", "MFC": "
 _SKIN = {"THI": ("femur", 0.33, 0.0), "TIB": ("tibia", 0.33, 0.0), "SHN": ("tibia", 0.5, 30.0),
          "Thigh.Upper": ("femur", 0.6, 0.0), "Thigh.Front": ("femur", 0.45, 90.0), "Thigh.Rear": ("femur", 0.3, -45.0),
          "Shank.Upper": ("tibia", 0.8, 0.0), "Shank.Front": ("tibia", 0.65, 90.0), "Shank.Rear": ("tibia", 0.55, -45.0)}
+#: Plug-in-Gait's wand markers, placed as its protocol asks (`_pig_wand`), not as plain skin markers
+_PIG_WANDS = {"THI": "femur", "TIB": "tibia"}
+#: shortest distance (m) of a wand marker's skin point from the line its plane is spanned from (a wand, or the
+#: shank's lateral bulk, keeps Plug-in-Gait's chord off a degenerate plane)
+PIG_WAND_MIN_OFFSET = 0.03
 #: rigid clusters: prefix -> (segment, fraction, direction deg); corners (long, tangential) m
 _CLUSTERS = {"TH": ("femur", 0.5, 30.0), "SH": ("tibia", 0.5, 30.0)}
 _CORNERS = ((0.045, 0.03), (0.045, -0.03), (-0.035, -0.03), (-0.045, 0.035))
@@ -282,6 +287,34 @@ def _skin_point(S, anat, seg, s, frac, angle_deg, soft):
     return c + (radius + soft) * d, d, z
 
 
+def _pig_wand(S, anat, s, seg, soft, marker):
+    """Skin point and outward direction (model ground) of Plug-in-Gait's THI or TIB wand marker, aimed at the
+    KNE or ANK marker centre `marker` (ground, m).
+
+    Plug-in-Gait's chord (`kinematics.gait.pig.chord_joint_centre`) puts the knee (ankle) centre in the plane
+    of the wand, the proximal centre and the KNE (ANK) marker: the wand is aimed, as its protocol asks (Davis et
+    al. 1991), so that this plane holds the joint centres' line and the lateral marker as placed (palpation
+    error and all).  THI sits at the lower third of the thigh, TIB at the lower third of the shank, each on the
+    joint centres' line turned towards its KNE (ANK) marker, at the skin over the bone (femur; tibia and
+    fibula), at least `PIG_WAND_MIN_OFFSET` from the line; tibial torsion 0 in subject.json, as most labs
+    leave it.  Set straight lateral in the ground instead, TIB sat anterior of the knee-ANK line (the
+    malleolus lies postero-lateral) and the chord put the ankle centre 75-80 mm off; aimed along the flexion
+    axes instead of the markers (the epicondyle is not on the knee axis), the knee centre 13-30 mm.
+    """
+    prox, dist = (f"hip_{s}", f"knee_{s}") if seg == "femur" else (f"knee_{s}", f"ankle_{s}")
+    Pj, Dj = S.joint[prox][0], S.joint[dist][0]
+    z = (Pj - Dj) / np.linalg.norm(Pj - Dj)
+    d = (marker - Dj) - ((marker - Dj) @ z) * z
+    d /= np.linalg.norm(d)
+    base = Dj + 0.33 * (Pj - Dj)
+    V = np.vstack([S.verts(f"{b_}_{s}") for b_ in ((seg,) if seg == "femur" else ("tibia", "fibula"))
+                   if f"{b_}_{s}" in anat.local_meshes])
+    rel = V - base
+    near = np.abs(rel @ z) < 0.01
+    reach = float((rel[near] @ d).max()) if near.any() else 0.0
+    return base + max(reach + soft, PIG_WAND_MIN_OFFSET) * d, d
+
+
 def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int, *, palpation: bool = True):
     """Place every marker of `marker_set` on `anat` (standing pose `q_standing`).
 
@@ -308,7 +341,7 @@ def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int
     bodies = set(anat.model.body_names)
     r = DEFAULT_MARKER_RADIUS
     clusters: dict[tuple, dict] = {}
-    deferred = []
+    deferred, wands = [], []
     for label, md in marker_set.markers.items():
         if md.segment not in bodies:
             continue
@@ -342,6 +375,8 @@ def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int
             n = _normal(mesh, surf, radius=max(NORMAL_RADIUS_MIN, t))
             placed[label] = PlacedMarker(label, body, surf + (t + r) * n, "landmark", md.landmark or f"{P}{site}",
                                          p_loc, surf, n, t, off)
+        elif base in _PIG_WANDS:
+            wands.append((label, base, s))       # aimed at the KNE / ANK marker: placed after it
         elif base in _SKIN:
             seg, frac, ang = _SKIN[base]
             t = t_of("thigh" if seg == "femur" else "shank", P)
@@ -364,6 +399,22 @@ def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int
             pos = x + (0.015 + r) * d + lo * z + ta * tang
             placed[label] = PlacedMarker(label, body, S.to_local(body, pos), "cluster", None, None,
                                          S.to_local(body, x), S.dir_local(body, d), t, None)
+    for label, base, s in wands:
+        seg = _PIG_WANDS[base]
+        P = s.upper()
+        t = t_of("thigh" if seg == "femur" else "shank", P)
+        aim = f"{P}{'KNE' if seg == 'femur' else 'ANK'}"
+        if aim in placed:
+            m = placed[aim]
+            aim_at = S.R[m.body] @ m.offset + S.p[m.body]
+        else:                                    # no such marker in the set: its landmark
+            bone, p_loc = lms[aim]
+            b = anat.bone_body[bone]
+            aim_at = S.R[b] @ (p_loc + (t_of(aim[1:], P) + r) * _normal(anat.local_meshes[bone], p_loc)) + S.p[b]
+        x, d = _pig_wand(S, anat, s, seg, t, aim_at)
+        body = f"{seg}_{s}"
+        placed[label] = PlacedMarker(label, body, S.to_local(body, x + r * d), "skin", None, None,
+                                     S.to_local(body, x), S.dir_local(body, d), t, None)
     for label in deferred:        # V.Sacral: midway between the PSIS, over the sacrum
         ps = [lms[f"{P}PSI"][1] for P in ("R", "L")]
         mid = 0.5 * (ps[0] + ps[1])
