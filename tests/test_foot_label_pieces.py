@@ -4,11 +4,9 @@ calcaneus with the tarsals, metatarsals), with its talus and tibia, voxelised at
 would give them."""
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
-import trimesh
+from bone_volumes import voxelised_bones
 
 VOXEL = 1.416e-3
 
@@ -24,32 +22,19 @@ def _staple_marker(path, name: str) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def icl_foot(shared_data, tmp_path_factory):
-    from phantoms.imaging import write_label_nifti
-    from phantoms.real_anatomy import mesh_label_volume
-
-    meshes = {}
-    for b in ("tibia_r", "calcn_r", "talus_r"):
-        m = trimesh.load(shared_data / "bones" / "ICL_MRI" / f"{b}.ply", process=False)
-        m.apply_scale(1e-3)
-        meshes[b] = m
-    lmap = {"tibia_r": 4, "talus_r": 6, "calcn_r": 7}
-    labels, affine, _ = mesh_label_volume(meshes, voxel=(VOXEL,) * 3, label_map=lmap)
-    d = tmp_path_factory.mktemp("icl_foot")
-    write_label_nifti(d / "labels.nii.gz", labels, affine)
-    (d / "label_map.json").write_text(json.dumps(lmap))
-    return d, shared_data
+    vol = voxelised_bones(shared_data / "bones" / "ICL_MRI", {"tibia_r": 4, "talus_r": 6, "calcn_r": 7}, VOXEL,
+                          tmp_path_factory.mktemp("icl_foot"))
+    return vol, shared_data
 
 
 def test_metatarsals_of_a_foot_label_are_kept_and_d5m_stays_on_the_fifth_head(icl_foot):
     """Measured: 4 metatarsal pieces of 5-6 cm³ kept, noise islands of at most 7 voxels removed; RD5M 1.5 mm
     from the one the mesh gives and 3 mm from STAPLE's (with the pieces removed as islands: 61 mm, on the
     cuboid).  A femur label still drops a 6 cm³ piece (a patella labelled as femur is not the femur)."""
-    from personalize.io import read_label_volume
     from personalize.landmarks import detect_landmarks
     from personalize.surfaces import clean_mask, load_bones, surfaces_from_labels
 
-    d, data = icl_foot
-    vol = read_label_volume(d / "labels.nii.gz", d / "label_map.json")
+    vol, data = icl_foot
     surf = surfaces_from_labels(vol, eager_points=False)
     rep = surf["calcn_r"].report
     assert rep["components_kept"] >= 4

@@ -2,11 +2,9 @@
 calcaneus (../shared/data) voxelised at 1.3 and 1.6 mm, against the expert-built model's ankle axis."""
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
-import trimesh
+from bone_volumes import voxelised_bones
 
 
 @pytest.mark.parametrize("voxel_mm", [1.3, 1.6])
@@ -14,23 +12,12 @@ def test_talar_dome_axis_of_a_voxelised_talus_matches_the_expert_model(shared_da
     """Measured 1.8 and 0.5 deg.  The contact-patch cylinder alone (one seed, ``DOME_SEED_ANGLES = (0,)``)
     landed on the dome's second cylinder, 73.5 and 75.8 deg off; the refit of least rms over the turned seeds
     is the flexion axis."""
-    from phantoms.imaging import write_label_nifti
-    from phantoms.real_anatomy import mesh_label_volume
     from personalize.evaluation.reference_models import read_reference_joints
-    from personalize.io import read_label_volume
     from personalize.landmarks import detect_landmarks
     from personalize.surfaces import surfaces_from_labels
 
-    meshes = {}
-    for b in ("tibia_r", "talus_r", "calcn_r"):
-        m = trimesh.load(shared_data / "bones" / "LHDL_CT" / f"{b}.ply", process=False)
-        m.apply_scale(1e-3)
-        meshes[b] = m
-    lmap = {"tibia_r": 4, "talus_r": 6, "calcn_r": 7}
-    labels, affine, _ = mesh_label_volume(meshes, voxel=(voxel_mm * 1e-3,) * 3, label_map=lmap)
-    write_label_nifti(tmp_path / "labels.nii.gz", labels, affine)
-    (tmp_path / "label_map.json").write_text(json.dumps(lmap))
-    vol = read_label_volume(tmp_path / "labels.nii.gz", tmp_path / "label_map.json")
+    vol = voxelised_bones(shared_data / "bones" / "LHDL_CT", {"tibia_r": 4, "talus_r": 6, "calcn_r": 7},
+                          voxel_mm * 1e-3, tmp_path)
     axis = np.asarray(detect_landmarks(surfaces_from_labels(vol, eager_points=False)).bones["talus_r"]
                       .axes["ankle_axis"].direction, float)
     expert = read_reference_joints(shared_data / "reference_models" / "manual_LHDL_CT.osim")["ankle_r"].rotation[:, 2]
