@@ -89,6 +89,7 @@ class BoneSurfaces(dict):
         self.rejected = dict(rejected or {})
         self.notes = list(notes or [])
 
+
 #: labels that hold several bones (`personalize.surfaces.masks.BONE_PIECE_MIN_VOLUME`): the foot without its
 #: talus, the phalanges, a whole foot
 MULTI_BONE_LABELS = ("calcn_", "toes_", "foot_")
