@@ -70,7 +70,6 @@ def _floor(anat, truth: dict, build: str, names, target, anchor=None, draws: int
     table = TISSUE_CLASSES[build]
     key = [s if s in table else "KNE" for s in site]
     P = np.array([M[k]["landmark_body_m"] for k in names])
-    N = np.array([M[k]["normal_body"] for k in names])
     mean = np.array([table[k][0] for k in key]) * 1e-3
     tsd = np.array([table[k][1] for k in key]) * 1e-3
     psd = np.array([PALPATION_SD_MM[s] for s in site]) * 1e-3
@@ -87,8 +86,7 @@ def _floor(anat, truth: dict, build: str, names, target, anchor=None, draws: int
         if swing:
             m = []
             for mesh, p, d, tk in zip(meshes, P, tang, t):
-                V = np.asarray(mesh.vertices)
-                q = V[int(np.argmin(np.linalg.norm(V - (p + d), axis=1)))]
+                q = np.asarray(mesh.vertices)[mesh.kdtree.query(p + d)[1]]      # the phantoms' re-projection
                 m.append(q + (tk + r) * _normal(mesh, q, max(NORMAL_RADIUS_MIN, tk)))
             m = np.array(m)
         else:
