@@ -38,7 +38,7 @@ __all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD"
 #: `MRI_HIP_MODEL_SD`: maximum likelihood of the MRI hip errors of the realistic phantoms (palpated markers, child /
 #: adult / obese tissue; benchmarks/realistic_calibration.py, 32 legs of 16 real-anatomy subjects of seed 1000,
 #: every marker set and lab; calibration.json)
-MRI_HIP_COV_SCALE = 1.5792
+MRI_HIP_COV_SCALE = 1.5485
 #: the same scale with the tissue under all four pelvic markers measured in the MRI's body label (calibration.json
 #: ``mri_hip_cov_scale_measured``); the measured sd holds an assumed 2 mm posture term and the 3 mm palpation sd,
 #: both absent on the phantoms: use 1.0 on real data until calibrated there
@@ -52,7 +52,7 @@ MRI_HIP_MODEL_SD_MEASURED = 0.00152
 #: m per axis, model-error sd added to a regression hip's stated covariance (Davis, Harrington: their published
 #: errors are on the bony landmarks of their own cohorts; maximum likelihood on the realistic phantoms,
 #: benchmarks/realistic_calibration.py; calibration.json)
-MOTION_HIP_MODEL_SD = 0.0149
+MOTION_HIP_MODEL_SD = 0.01517
 
 
 def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None = None, model_sd: float = 0.0):

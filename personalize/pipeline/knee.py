@@ -38,11 +38,11 @@ MRI_KNEE_AXIS_SD_SCALE = 0.107
 #: 16 real-anatomy subjects of seed 1000, every marker set and lab); with the pelvic tissue measured (12 analytic
 #: subjects with the skin label, 24 legs):
 #: mean Mahalanobis d² = 3 (benchmarks/knee_ankle_calibration.py; calibration.json)
-MRI_KNEE_CENTRE_COV_SCALE = 0.7465
+MRI_KNEE_CENTRE_COV_SCALE = 0.6539
 MRI_KNEE_CENTRE_COV_SCALE_MEASURED = 0.017
 #: model-error sd (m per axis) added to the scaled MRI knee centre covariance with prior soft tissue (realistic
 #: phantoms, benchmarks/realistic_calibration.py; calibration.json)
-MRI_KNEE_MODEL_SD = 0.00428
+MRI_KNEE_MODEL_SD = 0.00377
 #: model-error sd (m per axis) added to the motion knee centre's stated covariance (realistic phantoms,
 #: benchmarks/realistic_calibration.py; calibration.json)
 MOTION_KNEE_MODEL_SD = 0.0
