@@ -155,14 +155,15 @@ class Correspondences:
         self.tissue[-1] = _per_marker(None, name, 0) if given is None else 0.0
         self.palpation_sd[-1] = palpation_sd(name) if (given is None if palpated is None else palpated) else 0.0
 
-    def register(self, segment: str | None = None, *, k_outlier: float = 3.0, tissue_prior=None) -> Registration:
+    def register(self, segment: str | None = None, *, k_outlier: float = 3.0, tissue_prior=None,
+                 fixed=()) -> Registration:
         """`register_landmarks` of these pairs; with `tissue_prior` (`kinematics.gait.soft_tissue.TissueScalePrior`)
-        the scale of the prior tissues is estimated with the pose."""
+        the scale of the prior tissues is estimated with the pose; `fixed`: names never rejected as outliers."""
         return register_landmarks(np.array(self.mri), np.array(self.lab), np.array(self.mri_cov), np.array(self.lab_cov),
                                   np.array(self.normals), np.array(self.offset), offset_sd=np.array(self.offset_sd),
                                   normal_sd_deg=np.array(self.normal_sd_deg), names=self.names, k_outlier=k_outlier,
                                   segment=segment, tissue=np.array(self.tissue) if tissue_prior is not None else None,
-                                  tissue_prior=tissue_prior, palpation_sd=np.array(self.palpation_sd))
+                                  tissue_prior=tissue_prior, palpation_sd=np.array(self.palpation_sd), fixed=fixed)
 
 
 def marker_correspondences(bones: Mapping[str, BoneLandmarks], bone_names, marker_names, static: Mapping[str, Gaussian],

@@ -283,8 +283,7 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         m_right = unit(sp.mtp_axis, where="model") if np.dot(sp.mtp_axis, right) > 0 else -unit(sp.mtp_axis, where="model")
         R_f = frame_yz(H - K, k_right, where="model")
         R_t = frame_yz(K - A, k_right, where="model")
-        sub = np.asarray(sp.subtalar, float)
-        sub = sub + np.dot(A - sub, st) * st                # the subtalar axis point nearest the ankle centre
+        sub = np.asarray(sp.subtalar, float)                # the MRI's subtalar centre (as expert models place it)
         frames.update({f"femur_{s}": (K, R_f), f"tibia_{s}": (A, R_t), f"talus_{s}": (A, R_t),
                        f"calcn_{s}": (sub, R_t), f"toes_{s}": (np.asarray(sp.mtp, float), R_t)})
         hc = [sided(c, s) for c in JOINT_COORDINATES["hip"]]

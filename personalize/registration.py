@@ -30,7 +30,10 @@ Outliers (a mislabelled or misplaced marker) are rejected one at a time by
 leave-one-out prediction: the point whose residual against the fit of the
 others has the largest Mahalanobis distance d_k² = rᵀ(Σ_k + J_k Cov₋ₖ J_kᵀ)⁻¹ r
 is dropped while d_k exceeds the χ²₃ quantile equivalent to `k_outlier` sd
-and more than `min_points` remain.
+and more than `min_points` remain.  The `fixed` points (joint centres and axes
+that tie a segment to its neighbour: constraints, not observations) are never
+dropped: when one of them is the worst, rejection stops there and the χ² gate
+shows the conflict.
 
 Every transferred quantity (point, direction) carries the registration
 covariance to first order: for y = R q + t, Cov y = J_y Cov(x) J_yᵀ + R C_q Rᵀ.
@@ -496,7 +499,7 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
                        offset=SKIN_THICKNESS + DEFAULT_MARKER_RADIUS, *, offset_sd: float = SKIN_THICKNESS_SD,
                        normal_sd_deg: float | np.ndarray = SURFACE_NORMAL_SD_DEG, names=None,
                        k_outlier: float = 3.0, min_points: int = 3, segment: str | None = None,
-                       tissue=None, tissue_prior=None, palpation_sd=None) -> Registration:
+                       tissue=None, tissue_prior=None, palpation_sd=None, fixed=()) -> Registration:
     """Weighted rigid registration of MRI landmarks to marker centres, with outlier rejection.
 
     See the module docstring for the model and the minimised χ².
@@ -534,6 +537,7 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
     tissue_prior : `kinematics.gait.soft_tissue.TissueScalePrior` (median, log_sd, site_log_sd), or None
     palpation_sd : float or (K,) m, palpation sd across the normal of each point (0 for a point known in both
         frames; `palpation_sd` per marker site); None: `PALPATION_SD` for the points whose tissue is estimated
+    fixed : names of points never rejected as outliers
 
     Returns
     -------
@@ -614,7 +618,8 @@ def register_landmarks(mri_points, marker_points, mri_cov=None, marker_sd=MARKER
             r = M[k] - y
             d2[j] = r @ np.linalg.solve(S, r)
         j = int(np.argmax(d2))
-        if d2[j] <= thr:
+        if d2[j] <= thr or names[keep[j]] in fixed:
+            # the worst point is a constraint: the others are not to blame; the chi-square shows the conflict
             break
         rejected[names[keep[j]]] = float(np.sqrt(d2[j]))
         keep.pop(j)

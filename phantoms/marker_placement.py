@@ -17,7 +17,8 @@ Z right; "lateral" is +Z on the right, -Z on the left):
 * HEE: most posterior calcaneus vertex; LCA: most lateral in its posterior quarter;
   D1M / D5M: most medial / lateral in the anterior 20 % of the foot (metatarsal
   heads); P1M / P5M: most medial / lateral in 50-70 % of the foot length
-  (metatarsal bases); TOE: most dorsal vertex over the second ray (anterior 22 %).
+  (metatarsal bases); TOE: most dorsal vertex over the second metatarsal head (anterior 8 %, 20-45 %
+  of the way across the forefoot).
 
 Marker centre = surface point + (skin thickness + marker radius) x outward normal
 (normal: mean vertex normal within max(6 mm, skin thickness) of the surface point:
@@ -241,7 +242,10 @@ def find_landmarks(anat, q_standing) -> dict:
         put(f"{P}D1M", f"calcn_{s}", C, i[np.argmin(lf[i])])
         put(f"{P}D5M", f"calcn_{s}", C, i[np.argmax(lf[i])])
         lo_l, hi_l = lf[i].min(), lf[i].max()
-        j = i[(lf[i] > lo_l + 0.3 * (hi_l - lo_l)) & (lf[i] < lo_l + 0.55 * (hi_l - lo_l))]
+        # over the second metatarsal head: the front 8 % (the heads; the most dorsal vertex of the front 20 %
+        # was 25 mm behind them, on the shafts), a fifth to under half of the way across the forefoot
+        k = np.flatnonzero(af > amax - 0.08 * L)
+        j = k[(lf[k] > lo_l + 0.2 * (hi_l - lo_l)) & (lf[k] < lo_l + 0.45 * (hi_l - lo_l))]
         j = j if j.size else i
         put(f"{P}TOE", f"calcn_{s}", C, j[np.argmax(C[j, 1])])
         i = np.flatnonzero((af > amin + 0.5 * L) & (af < amin + 0.7 * L))

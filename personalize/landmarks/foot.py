@@ -43,6 +43,41 @@ def _largest_hull_face_normal(V: np.ndarray) -> np.ndarray:
     return nk if (T[k, 0] - V.mean(axis=0)) @ nk > 0 else -nk
 
 
+#: position of the second ray across the forefoot, as a fraction of the D1M-D5M width from the medial border
+#: (first metatarsal head about 25 mm of a 90 mm forefoot; an anatomical assumption, not fitted)
+TOE_RAY_FRACTION = 0.3
+#: m, half-width of the band about the second ray, and the length behind its tip taken as the head
+TOE_BAND_HALF_WIDTH = 0.006
+TOE_HEAD_LENGTH = 0.015
+#: m, how far ahead of D1M (the first head's medial side) the second head's tip may lie; beyond it lie the toes
+#: (tip 12-16 mm ahead on ICL-MRI, LHDL-CT and both TLEM2-MRI feet; the band's front 29-41 mm ahead on MC22's
+#: feet, which keep their toes)
+TOE_MAX_AHEAD_OF_D1M = 0.02
+
+
+def _second_ray_dorsum(V, X, up, med, d1m, d5m, fore) -> np.ndarray | None:
+    """Plug-in-Gait's TOE site: the most dorsal point over the second metatarsal head (scanner, m), or None.
+
+    The second ray is the band at `TOE_RAY_FRACTION` of the way from D1M to D5M across the foot; its most
+    anterior vertex, at most `TOE_MAX_AHEAD_OF_D1M` ahead of D1M, is the head's tip, and the head the
+    `TOE_HEAD_LENGTH` behind it.
+    """
+    w = V @ med
+    w2 = float(d1m @ med + TOE_RAY_FRACTION * ((d5m - d1m) @ med))
+    band = fore & (np.abs(w - w2) < TOE_BAND_HALF_WIDTH)
+    if np.count_nonzero(band) < 10:
+        return None
+    x = V @ X
+    # a foot label with its toes: the band's front is the second toe, not the metatarsal head
+    band &= x < float(d1m @ X) + TOE_MAX_AHEAD_OF_D1M
+    if np.count_nonzero(band) < 10:
+        return None
+    tip = float(x[band].max())
+    head = band & (x > tip - TOE_HEAD_LENGTH)
+    k = np.flatnonzero(head)[np.argmax(V[head] @ up)]
+    return V[k].copy()
+
+
 def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right_hint=None,
                  talus: Surface | None = None) -> BoneLandmarks:
     """Detect heel / metatarsal landmarks, ground contacts, foot axes and the foot frame.
@@ -161,6 +196,9 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     for mk, direction in ((f"{P}D1M", med), (f"{P}D5M", -med)):
         k = extreme_vertex(surface, direction, fore, smooth=0.001)
         res.landmarks[mk] = Landmark(V[k].copy(), isotropic_cov(0.002))
+    toe = _second_ray_dorsum(V, X, up, med, res.landmarks[f"{P}D1M"].position, res.landmarks[f"{P}D5M"].position, fore)
+    if toe is not None:
+        res.landmarks[f"{P}TOE"] = Landmark(toe, isotropic_cov(0.003))
     # ---- axes and frame ---------------------------------------------------------------------------
     res.frames["foot"] = {"origin": hc.copy(), "rotation": np.column_stack([X, up, Z])}
     # hindfoot: principal axis of the calcaneus block (posterior 45 % of the foot)

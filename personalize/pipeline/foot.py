@@ -2,14 +2,16 @@
 
 The shank is registered from its ankle markers, projected on the MRI ankle
 axis, and the fused knee centre; the foot from its heel and metatarsal markers
-(a virtual TOE landmark between the metatarsal heads) and the fused ankle
-centre (else it follows the shank).  Motion: the transmalleolar axis ANK - MMA
+(TOE over the second metatarsal head), the fused ankle centre
+and the shank's ankle axis (else it follows the shank).  Motion: the transmalleolar axis ANK - MMA
 of the static trial (else the Plug-in-Gait torsioned tibia) and the
 Plug-in-Gait ankle centre (else the malleolus-marker midpoint,
 `motion.condylar_centre`).  The scales are calibrated on TRAINING phantoms
 (``calibration.json``).
 """
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -22,7 +24,7 @@ from .knee import centre_model_error, centre_scale, condyle_labels, motion_centr
 from .motion import MOTION_ANKLE_AXIS_SD_DEG, PIG_ANKLE_AXIS_SD_DEG
 from .segment_registration import register_with_centre, toe_landmark
 from .pig_uncertainty import pig_axis_sd_deg
-from .virtual_markers import KNEE_STANDING_ROTATION_SD_DEG, knee_axis_pairs
+from .virtual_markers import FOOT_STANDING_ROTATION_SD_DEG, KNEE_STANDING_ROTATION_SD_DEG, ankle_axis_pairs, knee_axis_pairs
 
 __all__ = ["MRI_ANKLE_AXIS_SD_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE_MEASURED",
            "SUBTALAR_DEFAULT", "estimate_ankle", "estimate_foot_axes", "MRI_ANKLE_MODEL_SD",
@@ -118,14 +120,25 @@ def estimate_foot_axes(ctx: JointContext, s: str, ankle: Fused, ankle_scale: flo
                        est: JointEstimates) -> tuple[Registration, dict]:
     """Foot registration and the subtalar and mtp axes of side `s` (`AxisLine`, MRI else defaults)."""
     S = s.upper()
+    j_ankle = ctx.joints[f"ankle_{s}"]
+    extra = ()
+    if f"tibia_{s}" in est.registrations and f"tibia_{s}" not in est.mri_dropped:
+        # the talus hangs from the tibia: the shank's ankle axis keeps the foot on the ankle joint
+        extra = ankle_axis_pairs(reg_shank, j_ankle.origin, j_ankle.axis, ankle.mean, s)
+        est.sources[f"foot_{s}_ankle_axis"] = (
+            "the MRI ankle axis carried by the shank registration (foot rotation off it between scanner and standing "
+            f"sd {FOOT_STANDING_ROTATION_SD_DEG:g} deg; pipeline.virtual_markers)")
     try:
         reg = register_with_centre(f"calcn_{s}", ctx.bones, [f"calcn_{s}", f"talus_{s}", f"toes_{s}"],
-                                   (f"{S}HEE", f"{S}D1M", f"{S}D5M"), ctx.static, ctx.meshes,
-                                   ctx.joints[f"ankle_{s}"].centre, ankle.gaussian.scaled(1.0 / ankle_scale),
+                                   (f"{S}HEE", f"{S}D1M", f"{S}D5M", f"{S}TOE"), ctx.static, ctx.meshes,
+                                   j_ankle.centre, ankle.gaussian.scaled(1.0 / ankle_scale), extra=extra,
                                    virtual=toe_landmark(ctx.bones.get(f"calcn_{s}"), S), tissue_scale=ctx.tissue_scale(est))
     except (InputError, FitError) as exc:
         reg = reg_shank
         est.notes.append(f"foot {S}: registered with the shank ({exc})")
+    else:
+        # on the model's ankle: the centre's residual would otherwise part the talus from the joint it hangs on
+        reg = replace(reg, t=reg.t + ankle.mean - (reg.R @ np.asarray(j_ankle.origin, float) + reg.t))
     lines = {}
     for jn in ("subtalar", "mtp"):
         j = ctx.joints.get(f"{jn}_{s}")

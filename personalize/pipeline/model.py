@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..model_builder import SideParameters, SubjectParameters
 from .inputs import SubjectInputs
 from .joint_estimates import JointEstimates
 from .marker_assignment import MarkerAssignment
 
-__all__ = ["subject_parameters", "bone_meshes_lab"]
+__all__ = ["subject_parameters", "bone_meshes_lab", "segment_placements", "joints_on_bones"]
 
 
 def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict,
@@ -51,22 +52,106 @@ def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict,
 
 
 
-def bone_meshes_lab(surfaces: dict, est: JointEstimates, sides) -> dict:
-    """Bone meshes moved into the static lab frame by their segment's registration: bone -> (mesh, body)."""
+def _placed_on_joints(reg, mri_prox, lab_prox, mri_dist=None, lab_dist=None) -> np.ndarray:
+    """4x4 scanner -> lab map of a segment's meshes: its registration turned and shifted onto the model's joints.
+
+    The registration alone leaves the bone where its markers put it, up to its joint anchor's residual (a femoral
+    head 9 mm off the model's hip).  The turn is the least that aligns the registered hip-knee (knee-ankle) line
+    with the model's (fused) one, the shift puts the mid-point of the MRI joint centres on the mid-point of the
+    model's: the two centres' length difference is then shared by both ends.  Without a distal joint the
+    proximal MRI centre goes onto the model's.
+    """
+    R = reg.R
+    if mri_dist is not None and lab_dist is not None:
+        u = R @ (np.asarray(mri_dist, float) - np.asarray(mri_prox, float))
+        v = np.asarray(lab_dist, float) - np.asarray(lab_prox, float)
+        axis = np.cross(u, v)
+        s, c = float(np.linalg.norm(axis)), float(u @ v)
+        if s > 1e-12:
+            R = Rotation.from_rotvec(axis / s * np.arctan2(s, c)).as_matrix() @ R
+    T = np.eye(4)
+    T[:3, :3] = R
+    mri_mid, lab_mid = np.asarray(mri_prox, float), np.asarray(lab_prox, float)
+    if mri_dist is not None and lab_dist is not None:
+        mri_mid, lab_mid = 0.5 * (mri_mid + np.asarray(mri_dist, float)), 0.5 * (lab_mid + np.asarray(lab_dist, float))
+    T[:3, 3] = lab_mid - R @ mri_mid
+    if not np.all(np.isfinite(T)):
+        T[:3, :3], T[:3, 3] = reg.R, reg.t
+    return T
+
+
+def _bone_segments(sides) -> dict:
+    """Bone -> (segment whose placement moves it, model body it belongs to)."""
     seg_of = {"pelvis": ("pelvis", "pelvis")}
     for s in sides:
         seg_of.update({f"femur_{s}": (f"femur_{s}", f"femur_{s}"), f"patella_{s}": (f"femur_{s}", f"femur_{s}"),
                        f"tibia_{s}": (f"tibia_{s}", f"tibia_{s}"), f"fibula_{s}": (f"tibia_{s}", f"tibia_{s}"),
                        f"talus_{s}": (f"calcn_{s}", f"talus_{s}"), f"calcn_{s}": (f"calcn_{s}", f"calcn_{s}"),
                        f"toes_{s}": (f"calcn_{s}", f"toes_{s}")})
-    out = {}
-    for bone, surf in surfaces.items():
-        if bone not in seg_of or seg_of[bone][0] not in est.registrations:
-            continue
-        reg = est.registrations[seg_of[bone][0]]
-        m = surf.mesh.copy()
+    return seg_of
+
+
+def segment_placements(est: JointEstimates, joints: dict | None = None) -> dict:
+    """Segment -> 4x4 scanner -> static lab map of its bones in the model.
+
+    With `joints` (joint name -> `personalize.frames.Joint`, scanner) the femur and shank are placed on the
+    model's hip, knee and ankle centres (`_placed_on_joints`); the foot's registration is already anchored on the
+    fused ankle (`foot.estimate_foot_axes`); the pelvis is its registration.
+    """
+    placed = {}
+    for seg, reg in est.registrations.items():
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = reg.R, reg.t
-        m.apply_transform(T)
+        bone, _, s = seg.partition("_")
+        ends = {"femur": ("hip", "knee"), "tibia": ("knee", "ankle")}.get(bone)
+        if joints is not None and ends is not None and s in est.centres and \
+                all(f"{j}_{s}" in joints and j in est.centres[s] for j in ends):
+            p, d = ends
+            T = _placed_on_joints(reg, joints[f"{p}_{s}"].origin, est.centres[s][p].fused.mean,
+                                  joints[f"{d}_{s}"].origin, est.centres[s][d].fused.mean)
+        placed[seg] = T
+    return placed
+
+
+def bone_meshes_lab(surfaces: dict, placements: dict, sides) -> dict:
+    """Bone meshes moved into the static lab frame by their segment's placement (`segment_placements`):
+    bone -> (mesh, body)."""
+    seg_of = _bone_segments(sides)
+    out = {}
+    for bone, surf in surfaces.items():
+        if bone not in seg_of or seg_of[bone][0] not in placements:
+            continue
+        m = surf.mesh.copy()
+        m.apply_transform(placements[seg_of[bone][0]])
         out[bone] = (m, seg_of[bone][1])
+    return out
+
+
+def joints_on_bones(pm, placements: dict, sides, joints: dict, truth_joints: dict | None = None) -> dict:
+    """Where the model's joint centres sit on its bones: each joint's parent- and child-side centre carried back
+    into its bone's scanner frame, against the MRI joint (``*_vs_mri_mm``) and the phantom truth (``*_vs_truth_mm``).
+
+    What an expert comparing the model with the bones (or with an expert-built model) measures; fusion moves a
+    centre off the bones' own estimate by at most its disagreement with the motion estimate.
+
+    pm : `personalize.model_builder.PersonalModel`; placements : `segment_placements`; joints : joint name ->
+    `personalize.frames.Joint` (scanner, m); truth_joints : joint name -> {"origin": (3,) m} (truth.json, scanner)
+    """
+    seg_of = _bone_segments(sides)
+    out = {}
+    for j in pm.model.joints:
+        if j.name not in joints:
+            continue
+        row = {}
+        for end, body, off in (("parent", j.parent, j.parent_offset), ("child", j.child, j.child_offset)):
+            if body not in seg_of or seg_of[body][0] not in placements or body not in pm.body_frames:
+                continue
+            o, R = pm.body_frames[body]
+            T = placements[seg_of[body][0]]
+            x = T[:3, :3].T @ (o + R @ off.translation - T[:3, 3])
+            row[f"{end}_vs_mri_mm"] = round(1e3 * float(np.linalg.norm(x - joints[j.name].origin)), 2)
+            if truth_joints and j.name in truth_joints:
+                row[f"{end}_vs_truth_mm"] = round(1e3 * float(np.linalg.norm(x - np.asarray(truth_joints[j.name]["origin"]))), 2)
+        if row:
+            out[j.name] = row
     return out

@@ -78,7 +78,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     from ..outputs import replaced_dir
     from ..parameter_fusion import fuse_segment_lengths
     from .marker_assignment import model_markers
-    from .model import bone_meshes_lab
+    from .model import bone_meshes_lab, joints_on_bones, segment_placements
     from .model_checks import bone_segment_lengths, check_model
     from .trials import chain_blend, solve_trials
 
@@ -95,7 +95,8 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     joints = {k: j.without_model_error() for k, j in bones.joints.items()}
     est = estimate_joints(inputs, bones.surfaces, bones.landmarks, joints, say, bones.dropped, skin=skin)
     gate_registrations(inputs, est, say)
-    meshes_lab = bone_meshes_lab(bones.surfaces, est, inputs.sides)
+    placements = segment_placements(est, joints)
+    meshes_lab = bone_meshes_lab(bones.surfaces, placements, inputs.sides)
     markers = model_markers(inputs, meshes_lab)
     say("building the model")
     try:
@@ -114,6 +115,8 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
                              inputs.functional, bones.dropped, notes, pm.parameters.sources, est, lengths, intercepts,
                              lab=inputs.lab.to_json(), measurements=_measurements_json(inputs))
     summary.markers = markers.to_json()
+    summary.joints_on_bones = joints_on_bones(pm, placements, inputs.sides, joints,
+                                              ((inputs.truth or {}).get("joints") or {}).get("joints"))
     say("checking the model against the bones")
     ms = inputs.marker_set
     bony = frozenset(k for k, v in ms.markers.items() if v.landmark) if ms is not None else frozenset()

@@ -32,7 +32,9 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
     fewer than 3 correspondences are available (a Plug-in-Gait marker set without
     medial knee/ankle markers: the distal joint centre of Plug-in-Gait stands in,
     and the MRI estimates of that segment are then not independent of the motion ones).  ``extra``: (name,
-    mri `Gaussian`, lab `Gaussian`) pairs always used (`virtual_markers.knee_axis_pairs`).
+    mri `Gaussian`, lab `Gaussian`) pairs always used (`virtual_markers.joint_axis_pairs`).  The joint centre and
+    the ``extra`` pairs tie the segment to its proximal neighbour and are never rejected as outliers: a segment
+    whose markers disagree with them fails its chi-square gate instead of coming loose from the joint.
     """
     thick = sd = None
     if tissue_scale is not None:
@@ -54,16 +56,17 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
             corr.add(name, mri, lab)
     if len(corr) < 3:
         raise InputError(seg, f"only {len(corr)} correspondences ({', '.join(corr.names) or 'none'}) to register the segment")
-    return corr.register(seg)
+    return corr.register(seg, fixed=("joint_centre", *(name for name, _, _ in extra)))
 
 
 def toe_landmark(calcn, S: str) -> dict:
-    """Virtual TOE landmark: mid-point of the dorsal points of the first and fifth metatarsal head spheres
-    (``met1_dorsal``, ``met5_dorsal`` of `personalize.landmarks.foot`), normal = the foot frame's up (Y) axis."""
+    """Virtual TOE landmark where the foot detector found no ``<S>TOE`` (the dorsum over the second metatarsal
+    head, `personalize.landmarks.foot`): the mid-point of the dorsal points of the metatarsal head spheres
+    (``met1_dorsal``, ``met5_dorsal``), normal = the foot frame's up (Y) axis; {} when the detector found it."""
     if calcn is None:
         return {}
     lm, fr = calcn.landmarks, calcn.frames
-    if "met1_dorsal" not in lm or "met5_dorsal" not in lm or "foot" not in fr:
+    if f"{S}TOE" in lm or "met1_dorsal" not in lm or "met5_dorsal" not in lm or "foot" not in fr:
         return {}
     mid = 0.5 * (lm["met1_dorsal"].position + lm["met5_dorsal"].position)
     return {f"{S}TOE": (mid, np.asarray(fr["foot"]["rotation"], float)[:, 1])}

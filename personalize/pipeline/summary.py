@@ -17,7 +17,9 @@ UNITS = {"centres": "m (mm where named *_mm)", "axes": "unit vectors", "angles":
          "angle_rmse_deg": "per coordinate, RMSE of the IK angle against the phantom truth over the gait trials, deg",
          "angle_offset_deg": "per coordinate, mean IK - true angle over the gait trials (constant part of the error), deg",
          "ik_rms_mm": "largest over the dynamic trials of the mean per-frame RMS marker error, mm",
-         "errors": "worst side; *_mm Euclidean distance, *_deg angle between axes (sign-free)"}
+         "errors": "worst side; *_mm Euclidean distance, *_deg angle between axes (sign-free)",
+         "joints_on_bones": "per joint, distance (mm) of the model's parent- and child-side joint centre, carried "
+                            "into its bone's scanner frame, from the MRI joint and (phantoms) the true one"}
 FRAME = ("internal frame: X the static pose's facing, Y left, Z up, the lab's origin "
          "(x_internal = lab.internal_from_lab @ x_lab)")
 
@@ -33,6 +35,7 @@ class SubjectSummary:
     lab : `kinematics.gait.lab_frame.LabFrame.to_json` of the trials' lab
     measurements : Plug-in-Gait measurement -> {"value": m, "source": subject file or how the bones gave it}
     markers : `pipeline.marker_assignment.MarkerAssignment.to_json`: each static marker's body and why
+    joints_on_bones : `pipeline.model.joints_on_bones`
     """
 
     subject: str
@@ -52,6 +55,7 @@ class SubjectSummary:
     lab: dict | None = None
     measurements: dict | None = None
     markers: dict | None = None
+    joints_on_bones: dict | None = None
 
     @property
     def ik_rms_mm(self) -> float:
@@ -94,6 +98,7 @@ class SubjectSummary:
                "trials": list(self.trials), "functional_trial": self.functional_trial,
                "dropped_joints": dict(self.dropped_joints), "notes": list(self.notes), "sources": self.sources,
                **({"markers": self.markers} if self.markers is not None else {}),
+               **({"joints_on_bones": self.joints_on_bones} if self.joints_on_bones is not None else {}),
                "estimates": self.estimates_json()}
         if est.skin:
             doc["skin_thickness"] = {k: v.summary() for k, v in est.skin.items()}

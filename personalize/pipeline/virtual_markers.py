@@ -39,6 +39,12 @@ them, with sd :math:`\sigma_k` = `KNEE_STANDING_ROTATION_SD_DEG`.  They are
 placed about the knee centre the shank is registered to (`knee_axis_pairs`),
 so they constrain the direction only.  The
 tibia's own torsion then comes from the MRI, not from a wand.
+
+Foot: the MRI ankle axis carried by the shank registration the same way
+(`ankle_axis_pairs`, sd `FOOT_STANDING_ROTATION_SD_DEG`), so that the talus
+hangs from the tibia at the ankle: registered from its heel and metatarsal
+markers alone, a foot whose palpated markers are 10-15 mm off put the talus
+15-36 mm from the ankle joint of the model built on it.
 """
 from __future__ import annotations
 
@@ -48,7 +54,8 @@ from lowerlimb.estimates import Gaussian
 from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
 
 __all__ = ["STANDING_HIP_ROTATION_SD_DEG", "AXIS_TILT_SD_DEG", "KNEE_STANDING_ROTATION_SD_DEG", "KNEE_AXIS_HALF_LENGTH",
-           "WIDTH_SD", "virtual_medial_knee", "knee_axis_pairs"]
+           "WIDTH_SD", "virtual_medial_knee", "knee_axis_pairs", "ankle_axis_pairs", "joint_axis_pairs",
+           "FOOT_STANDING_ROTATION_SD_DEG", "ANKLE_AXIS_HALF_LENGTH"]
 
 #: deg, sd of the standing hip rotation (knee flexion axis vs the pelvis's medio-lateral axis about the thigh).
 #: An assumption: quiet-standing hip rotation is within about +-10 deg in healthy adults; the value is not
@@ -61,6 +68,12 @@ AXIS_TILT_SD_DEG = 5.0
 KNEE_STANDING_ROTATION_SD_DEG = 5.0
 #: m, half the distance between the two knee-axis points (about half an epicondylar width)
 KNEE_AXIS_HALF_LENGTH = 0.04
+#: deg, sd of the foot's rotation off the ankle flexion axis between the scanner and standing: the ankle's
+#: secondary rotations and the subtalar joint, which the one-body foot registration lumps (assumed: subtalar
+#: inversion-eversion in quiet standing within about +-10 deg)
+FOOT_STANDING_ROTATION_SD_DEG = 10.0
+#: m, half the distance between the two ankle-axis points (about half a talar dome's width)
+ANKLE_AXIS_HALF_LENGTH = 0.02
 #: m, sd of the lateral-to-medial marker distance (two tissue priors and the landmarks)
 WIDTH_SD = 0.004
 
@@ -133,24 +146,39 @@ def virtual_medial_knee(static: dict, bones: dict, side: str, hip: np.ndarray, p
     return _virtual(lat, n, thigh, L, STANDING_HIP_ROTATION_SD_DEG)
 
 
-def knee_axis_pairs(reg_femur, knee_centre, knee_axis, knee_lab, side: str) -> list:
-    """The two knee-axis points of the module docstring as (name, scanner `Gaussian`, lab `Gaussian`) pairs.
+def joint_axis_pairs(reg_proximal, centre, axis, centre_lab, name: str, half_length: float,
+                     rotation_sd_deg: float) -> list:
+    """Two points of a joint's flexion axis as (name, scanner `Gaussian`, lab `Gaussian`) pairs.
 
-    Placed about the knee centre the shank is registered to (`knee_lab`, lab, m; the fused one), along the
-    femur registration's knee axis, so that they add the axis's direction and nothing else:
-    y± = k ± ℓ R_f u, Σ± = ℓ² [R_f u]× Ω_f [R_f u]×ᵀ + (ℓ sin σ_k)² I (Ω_f the registration's rotation covariance).
-
-    reg_femur : the femur's `personalize.registration.Registration`; knee_centre, knee_axis : (3,) the MRI knee
-    centre and flexion axis (scanner, m).  Pass them as `register_with_centre`'s ``extra``.
+    Placed about the joint centre the distal segment is registered to (`centre_lab`, lab, m; the fused one),
+    along the proximal registration's axis, so that they add the axis's direction and nothing else:
+    y± = k ± ℓ R_p u, Σ± = ℓ² [R_p u]× Ω_p [R_p u]×ᵀ + (ℓ sin σ)² I (Ω_p the registration's rotation
+    covariance, ℓ = `half_length`, σ = `rotation_sd_deg` the joint's rotation off that axis between the scanner
+    and standing).  `centre`, `axis` : (3,) the MRI joint centre and flexion axis (scanner, m); pairs named
+    ``<name>_a``, ``<name>_b``.  Pass them as `register_with_centre`'s ``extra``.
     """
     from lowerlimb.geometry import skew
 
-    u = _unit(np.asarray(knee_axis, float))
-    c = np.asarray(knee_centre, float)
-    w = reg_femur.R @ u
-    Om = np.asarray(reg_femur.cov, float)[:3, :3]
-    ell = KNEE_AXIS_HALF_LENGTH
-    C = ell**2 * skew(w) @ Om @ skew(w).T + (ell * np.sin(np.radians(KNEE_STANDING_ROTATION_SD_DEG)))**2 * np.eye(3)
-    k = np.asarray(knee_lab, float)
-    return [(f"knee_axis_{side}_{tag}", Gaussian(c + sign * ell * u, 1e-8 * np.eye(3)), Gaussian(k + sign * ell * w, C))
+    u = _unit(np.asarray(axis, float))
+    c = np.asarray(centre, float)
+    w = reg_proximal.R @ u
+    Om = np.asarray(reg_proximal.cov, float)[:3, :3]
+    ell = float(half_length)
+    C = ell**2 * skew(w) @ Om @ skew(w).T + (ell * np.sin(np.radians(rotation_sd_deg)))**2 * np.eye(3)
+    k = np.asarray(centre_lab, float)
+    return [(f"{name}_{tag}", Gaussian(c + sign * ell * u, 1e-8 * np.eye(3)), Gaussian(k + sign * ell * w, C))
             for sign, tag in ((1.0, "a"), (-1.0, "b"))]
+
+
+def knee_axis_pairs(reg_femur, knee_centre, knee_axis, knee_lab, side: str) -> list:
+    """The two knee-axis points of the module docstring (`joint_axis_pairs` of the femur registration,
+    ``knee_axis_<side>_a``/``_b``, ℓ = `KNEE_AXIS_HALF_LENGTH`, σ = `KNEE_STANDING_ROTATION_SD_DEG`)."""
+    return joint_axis_pairs(reg_femur, knee_centre, knee_axis, knee_lab, f"knee_axis_{side}", KNEE_AXIS_HALF_LENGTH,
+                            KNEE_STANDING_ROTATION_SD_DEG)
+
+
+def ankle_axis_pairs(reg_shank, ankle_centre, ankle_axis, ankle_lab, side: str) -> list:
+    """The two ankle-axis points that hang the foot from the shank (`joint_axis_pairs` of the shank
+    registration, ``ankle_axis_<side>_a``/``_b``, ℓ = `ANKLE_AXIS_HALF_LENGTH`, σ = `FOOT_STANDING_ROTATION_SD_DEG`)."""
+    return joint_axis_pairs(reg_shank, ankle_centre, ankle_axis, ankle_lab, f"ankle_axis_{side}", ANKLE_AXIS_HALF_LENGTH,
+                            FOOT_STANDING_ROTATION_SD_DEG)
