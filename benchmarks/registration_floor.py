@@ -61,7 +61,7 @@ def _bone_of(anat, body: str, p: np.ndarray):
 def _floor(anat, truth: dict, build: str, names, target, anchor=None, draws: int = 400, seed: int = 0,
            swing: bool = True) -> dict:
     from lowerlimb.geometry import DEFAULT_MARKER_RADIUS as r
-    from phantoms.marker_placement import NORMAL_RADIUS_MIN, PALPATION_SD_MM, TISSUE_CLASSES, _normal, draw_tissue
+    from phantoms.marker_placement import NORMAL_RADIUS_MIN, PALPATION_SD_MM, TISSUE_CLASSES, draw_tissue, skin_normal
     from personalize.registration import register_landmarks
 
     rng = np.random.default_rng(seed)
@@ -74,7 +74,7 @@ def _floor(anat, truth: dict, build: str, names, target, anchor=None, draws: int
     tsd = np.array([table[k][1] for k in key]) * 1e-3
     psd = np.array([PALPATION_SD_MM[s] for s in site]) * 1e-3
     meshes = [_bone_of(anat, M[k]["body"], p) for k, p in zip(names, P)]
-    N = np.array([_normal(m, p, max(NORMAL_RADIUS_MIN, t)) for m, p, t in zip(meshes, P, mean)])
+    N = np.array([skin_normal(m, p, max(NORMAL_RADIUS_MIN, t)) for m, p, t in zip(meshes, P, mean)])
     Q = P + (mean + r)[:, None] * N
     nn = np.einsum("ki,kj->kij", N, N)
     C = (psd ** 2 / 2)[:, None, None] * (np.eye(3) - nn) + (tsd ** 2)[:, None, None] * nn
@@ -87,7 +87,7 @@ def _floor(anat, truth: dict, build: str, names, target, anchor=None, draws: int
             m = []
             for mesh, p, d, tk in zip(meshes, P, tang, t):
                 q = np.asarray(mesh.vertices)[mesh.kdtree.query(p + d)[1]]      # the phantoms' re-projection
-                m.append(q + (tk + r) * _normal(mesh, q, max(NORMAL_RADIUS_MIN, tk)))
+                m.append(q + (tk + r) * skin_normal(mesh, q, max(NORMAL_RADIUS_MIN, tk)))
             m = np.array(m)
         else:
             m = P + tang + (t + r)[:, None] * N

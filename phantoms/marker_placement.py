@@ -61,7 +61,7 @@ from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
 from kinematics.io.marker_sets import MarkerSet
 
 __all__ = ["TISSUE_CLASSES", "PALPATION_SD_MM", "PlacedMarker", "find_landmarks",
-           "place_markers", "draw_tissue"]
+           "place_markers", "draw_tissue", "skin_normal", "NORMAL_RADIUS_MIN"]
 
 _MANTOVANI = "Mantovani, Ng & Lamontagne 2016, Gait Posture 44:48"
 #: body build -> site -> (mean mm, sd mm); "thigh"/"shank": soft tissue of the skin (non-bony) markers
@@ -89,7 +89,7 @@ _ON_LANDMARK = {"ASI": "ASI", "PSI": "PSI", "TRO": "TRO", "KNE": "KNE", "MFC": "
                 "Midfoot.Sup": "MFS", "Toe.Tip": "TIP"}
 #: skin markers: base name -> (segment, fraction from the distal joint, direction: angle from lateral
 #: towards anterior in deg)
-_SKIN = {"THI": ("femur", 0.33, 0.0), "TIB": ("tibia", 0.33, 0.0), "SHN": ("tibia", 0.5, 30.0),
+_SKIN = {"SHN": ("tibia", 0.5, 30.0),
          "Thigh.Upper": ("femur", 0.6, 0.0), "Thigh.Front": ("femur", 0.45, 90.0), "Thigh.Rear": ("femur", 0.3, -45.0),
          "Shank.Upper": ("tibia", 0.8, 0.0), "Shank.Front": ("tibia", 0.65, 90.0), "Shank.Rear": ("tibia", 0.55, -45.0)}
 #: Plug-in-Gait's wand markers, placed as its protocol asks (`_pig_wand`), not as plain skin markers
@@ -160,6 +160,9 @@ class _Standing:
     def to_local(self, body, x):
         return self.R[body].T @ (np.asarray(x, float) - self.p[body])
 
+    def to_ground(self, body, x):
+        return self.R[body] @ np.asarray(x, float) + self.p[body]
+
     def dir_local(self, body, v):
         return self.R[body].T @ np.asarray(v, float)
 
@@ -168,7 +171,9 @@ class _Standing:
 NORMAL_RADIUS_MIN = 0.006
 
 
-def _normal(mesh, p_local: np.ndarray, radius: float = NORMAL_RADIUS_MIN) -> np.ndarray:
+def skin_normal(mesh, p_local: np.ndarray, radius: float = NORMAL_RADIUS_MIN) -> np.ndarray:
+    """Outward unit normal of `mesh` at `p_local`: its vertex normals averaged within `radius` (m; the 8 nearest
+    vertices when fewer than 3 lie there), the direction a marker over that point is offset along."""
     V = np.asarray(mesh.vertices)
     N = np.asarray(mesh.vertex_normals)
     near = np.linalg.norm(V - p_local, axis=1) < radius
@@ -192,7 +197,7 @@ def find_landmarks(anat, q_standing) -> dict:
         out[name] = (bone, S.to_local(anat.bone_body[bone], pts[i]))
 
     gp = next(j for j in anat.model.joints if j.parent == "ground")
-    Rp, op = S.R["pelvis"] @ gp.child_offset.rotation, S.R["pelvis"] @ gp.child_offset.translation + S.p["pelvis"]
+    Rp, op = S.R["pelvis"] @ gp.child_offset.rotation, S.to_ground("pelvis", gp.child_offset.translation)
     Vg = S.verts("pelvis")
     Vp = (Vg - op) @ Rp                                    # pelvis frame: x anterior, y up, z right
     for s in anat.sides:
@@ -363,7 +368,7 @@ def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int
             bone, p_loc = lms[f"{P}{site}"]
             body = anat.bone_body[bone]
             mesh = anat.local_meshes[bone]
-            n = _normal(mesh, p_loc)
+            n = skin_normal(mesh, p_loc)
             off = np.zeros(3)
             surf = p_loc
             sd = PALPATION_SD_MM.get(site, 0.0) * 1e-3 if palpation else 0.0
@@ -376,7 +381,7 @@ def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int
                 off = surf - p_loc
             t = t_of(site, P)
             # the skin over a prominence follows the bone at the scale of the tissue between them, not a facet's
-            n = _normal(mesh, surf, radius=max(NORMAL_RADIUS_MIN, t))
+            n = skin_normal(mesh, surf, radius=max(NORMAL_RADIUS_MIN, t))
             placed[label] = PlacedMarker(label, body, surf + (t + r) * n, "landmark", md.landmark or f"{P}{site}",
                                          p_loc, surf, n, t, off)
         elif base in _PIG_WANDS:
@@ -410,11 +415,11 @@ def place_markers(anat, q_standing, marker_set: MarkerSet, build: str, seed: int
         aim = f"{P}{'KNE' if seg == 'femur' else 'ANK'}"
         if aim in placed:
             m = placed[aim]
-            aim_at = S.R[m.body] @ m.offset + S.p[m.body]
+            aim_at = S.to_ground(m.body, m.offset)
         else:                                    # no such marker in the set: its landmark
             bone, p_loc = lms[aim]
             b = anat.bone_body[bone]
-            aim_at = S.R[b] @ (p_loc + (t_of(aim[1:], P) + r) * _normal(anat.local_meshes[bone], p_loc)) + S.p[b]
+            aim_at = S.to_ground(b, p_loc + (t_of(aim[1:], P) + r) * skin_normal(anat.local_meshes[bone], p_loc))
         x, d = _pig_wand(S, anat, s, seg, t, aim_at)
         body = f"{seg}_{s}"
         placed[label] = PlacedMarker(label, body, S.to_local(body, x + r * d), "skin", None, None,
