@@ -94,21 +94,25 @@ def _bone_segments(sides) -> dict:
 def segment_placements(est: JointEstimates, joints: dict | None = None) -> dict:
     """Segment -> 4x4 scanner -> static lab map of its bones in the model.
 
-    With `joints` (joint name -> `personalize.frames.Joint`, scanner) the femur and shank are placed on the
-    model's hip, knee and ankle centres (`_placed_on_joints`); the foot's registration is already anchored on the
-    fused ankle (`foot.estimate_foot_axes`); the pelvis is its registration.
+    With `joints` (joint name -> `personalize.frames.Joint`, scanner) the pelvis is placed on the model's two
+    hip centres, the femur on its hip and knee centres, the shank on its knee and ankle centres
+    (`_placed_on_joints`): the fused centres say where the bones are, so the bones follow them rather than the
+    joints leaving the bones (a pelvis registered from palpated markers 10 mm off left the model's hips up to
+    27 mm from the acetabula).  The foot's registration is already anchored on the fused ankle
+    (`foot.estimate_foot_axes`).
     """
     placed = {}
     for seg, reg in est.registrations.items():
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = reg.R, reg.t
         bone, _, s = seg.partition("_")
-        ends = {"femur": ("hip", "knee"), "tibia": ("knee", "ankle")}.get(bone)
-        if joints is not None and ends is not None and s in est.centres and \
-                all(f"{j}_{s}" in joints and j in est.centres[s] for j in ends):
-            p, d = ends
-            T = _placed_on_joints(reg, joints[f"{p}_{s}"].origin, est.centres[s][p].fused.mean,
-                                  joints[f"{d}_{s}"].origin, est.centres[s][d].fused.mean)
+        ends = {"femur": (("hip", s), ("knee", s)), "tibia": (("knee", s), ("ankle", s)),
+                "pelvis": tuple(("hip", side) for side in sorted(est.centres))}.get(bone, ())
+        ends = [(f"{j}_{side}", side, j) for j, side in ends
+                if joints is not None and f"{j}_{side}" in joints and j in est.centres.get(side, {})]
+        if ends:
+            pts = [(joints[n].origin, est.centres[side][j].fused.mean) for n, side, j in ends[:2]]
+            T = _placed_on_joints(reg, *pts[0], *(pts[1] if len(pts) > 1 else ()))
         placed[seg] = T
     return placed
 
