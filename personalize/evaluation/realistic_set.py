@@ -24,13 +24,12 @@ from lowerlimb.estimates import Gaussian
 from personalize.cohort import DEFAULT_JOB
 from personalize.cohort.jobs import resolve_job
 from personalize.evaluation.metrics import SOURCES
+from personalize.pipeline.calibration import CHI2_2_95, CHI2_3_95
 from personalize.evaluation.phantom_set import GENERATED
 from personalize.evaluation.truth import true_static_centres
 
 #: the real anatomies of the realistic set: folder under the data root -> expert model
 REAL_ANATOMIES = {"ICL_MRI": "manual_ICL_MRI.osim", "LHDL_CT": "manual_LHDL_CT.osim"}
-#: chi-square 95 % quantile with 3 degrees of freedom (coverage of a 3-D ellipsoid)
-CHI2_3_95 = 7.814727903251178
 REALISTIC_SPEC = "realistic.json"
 
 
@@ -190,7 +189,9 @@ def realistic_validation_job(subject_dir: Path, out: Path, progress: Callable[[s
 
 
 def coverage_metrics(summary: dict, subject_dir: Path) -> dict:
-    """Per joint and source: 1 when the truth lies inside the stated 95 % ellipsoid (chi-square 3 dof), else 0.
+    """Per joint and source: 1 when the truth lies inside the stated 95 % ellipsoid (chi-square 3 dof), else 0;
+    per knee and ankle axis (``coverage.knee_axis_r.fused``): 1 when the angular error lies inside the stated
+    95 % cone (θ/σ)² <= χ²₂(0.95), σ the stated 1-sd angle per tangent direction.
 
     The estimates (summary ``estimates.<joint>_centre``: mean and covariance, the run's internal frame)
     are compared with the true static centres mapped by the summary's ``lab.internal_from_lab``.
@@ -199,9 +200,7 @@ def coverage_metrics(summary: dict, subject_dir: Path) -> dict:
     truth = true_static_centres(Path(subject_dir), (summary.get("lab") or {}).get("internal_from_lab"))
     est = summary.get("estimates") or {}
     out: dict[str, float] = {}
-    if not truth:
-        return out
-    for joint, t in truth.items():
+    for joint, t in (truth or {}).items():
         e = est.get(f"{joint}_centre")
         if not e:
             continue
@@ -219,6 +218,18 @@ def coverage_metrics(summary: dict, subject_dir: Path) -> dict:
                 continue
             out[f"mahalanobis2.{joint}.{src}"] = d2
             out[f"coverage.{joint}.{src}"] = float(d2 <= CHI2_3_95)
+    # axes: the angular error against the stated 1-sd angle per tangent direction, (θ/σ)² ~ χ²₂
+    for side, per in (summary.get("errors_per_side") or {}).items():
+        for jn in ("knee", "ankle"):
+            e, err = est.get(f"{jn}_{side}_axis"), per.get(f"{jn}_axis_deg")
+            if not e or not err:
+                continue
+            for src in SOURCES:
+                sd = (e.get(src) or {}).get("sd_deg")
+                if sd and err.get(src) is not None and np.isfinite(err[src]):
+                    z2 = (float(err[src]) / float(sd)) ** 2
+                    out[f"mahalanobis2.{jn}_axis_{side}.{src}"] = z2
+                    out[f"coverage.{jn}_axis_{side}.{src}"] = float(z2 <= CHI2_2_95)
     return out
 
 

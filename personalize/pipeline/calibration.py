@@ -23,6 +23,8 @@ CALIBRATION_FILE = Path(__file__).with_name("calibration.json")
 
 #: chi-square 95 % quantile with 3 degrees of freedom (a 3-D ellipsoid)
 CHI2_3_95 = 7.814727903251178
+#: chi-square 95 % quantile with 2 degrees of freedom (an axis's angular error over its per-direction sd, squared)
+CHI2_2_95 = 5.991464547107979
 
 
 def constants() -> dict:

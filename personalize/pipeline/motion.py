@@ -39,12 +39,14 @@ __all__ = ["motion_hip", "motion_knee_axis", "pig_static", "has_pig_markers", "M
 #: mirrored): the second moment about zero of the training legs' SCoRE errors (sds 4.9, 7.2, 10.4 mm;
 #: calibration.json ``motion_hip_sta_cov``)
 MOTION_HIP_STA_COV = np.array([[23.7, 1.5, -21.4], [1.5, 51.6, 15.0], [-21.4, 15.0, 108.3]]) * 1e-6
-#: soft-tissue-artefact sd of a SARA knee axis on skin-marker clusters (14 deg rms actual; calibration.json)
-MOTION_KNEE_AXIS_SD_DEG = 10.0
-#: the transmalleolar axis ANK - ANKM of the static trial: the palpation value (~3 mm per marker over a ~70 mm
-#: malleolar span), not the phantoms' 0.07 deg (their malleolar markers sit exactly on the talocrural axis), which
-#: would make the markers override the MRI on real data (calibration.json)
-MOTION_ANKLE_AXIS_SD_DEG = 3.0
+#: soft-tissue-artefact sd of a SARA knee axis on skin-marker clusters: the largest per-anatomy Rayleigh maximum
+#: likelihood of the realistic phantoms' SARA errors (analytic 10.3, ICL_MRI 4.8, LHDL_CT 3.0 deg; 40 legs of seed
+#: 1000; benchmarks/axis_calibration.py, calibration.json)
+MOTION_KNEE_AXIS_SD_DEG = 10.26
+#: the transmalleolar axis ANK - ANKM of the static trial against the talocrural axis: the largest per-anatomy
+#: Rayleigh maximum likelihood (LHDL_CT 10.5, ICL_MRI 5.7 deg, analytic 0.1: its malleolar markers sit on the
+#: axis; 40 legs of seed 1000; the palpation value 3 deg had covered 60 %; benchmarks/axis_calibration.py)
+MOTION_ANKLE_AXIS_SD_DEG = 10.48
 #: Plug-in-Gait torsioned-tibia ankle axis (no medial malleolus marker): assumed sd, not calibrated
 PIG_ANKLE_AXIS_SD_DEG = 6.0
 #: Plug-in-Gait knee / ankle centre sd (m per axis), calibrated on TRAINING phantoms
