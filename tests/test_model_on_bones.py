@@ -117,3 +117,23 @@ def test_toe_site_is_over_the_second_metatarsal_head(shared_data):
             assert 0.2 < across < 0.45, (name, s, across)
             # at the heads, not on the shafts nor (MC22 keeps its toes) on the phalanges
             assert -0.012 < (toe - d1) @ X < 0.021, (name, s, (toe - d1) @ X)
+
+
+def test_pelvis_frame_of_the_bone_in_the_models_axes():
+    from personalize.landmarks.common import BoneLandmarks, Landmark
+    from personalize.pipeline.model import pelvis_bone_frame
+
+    R = Rotation.from_rotvec([0.1, -0.3, 0.2]).as_matrix()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, [0.2, 0.1, 0.9]
+    isb = Rotation.from_rotvec([0.0, 0.0, np.radians(-12.0)]).as_matrix()   # X anterior, Y up, Z right; tilted
+    pel = BoneLandmarks(bone="pelvis", side=None)
+    pel.frames["isb"] = {"origin": np.array([0.0, 0.05, 0.0]), "rotation": isb}
+    assert pelvis_bone_frame(T, pel) is None                                 # no ASIS / PSIS: the markers' frame
+    for k in ("RASI", "LASI", "RPSI", "LPSI"):
+        pel.landmarks[k] = Landmark(np.zeros(3), np.eye(3) * 1e-6)
+    o, A = pelvis_bone_frame(T, pel)
+    assert np.allclose(o, R @ [0.0, 0.05, 0.0] + T[:3, 3])
+    # x anterior, y left (= -Z right), z up (= Y superior), right-handed
+    assert np.allclose(A, R @ np.column_stack([isb[:, 0], -isb[:, 2], isb[:, 1]]))
+    assert np.linalg.det(A) == pytest.approx(1.0)

@@ -55,6 +55,8 @@ class JointEstimates:
     lines[side][joint] : `AxisLine` (subtalar, mtp)
     registrations : segment -> `personalize.registration.Registration` (scanner -> lab)
     pelvis : (origin (3,), axes (3, 3)) Plug-in-Gait pelvis frame of the static markers
+    pelvis_bone : the same axes convention (x anterior, y left, z up) from the MRI pelvis's ISB frame as the
+        model places the bone (`pipeline.model.pelvis_bone_frame`), or None: the model's pelvis frame
     hip_joint : `Fused` of both hip centres (6-vector r, l; sources "mri", "motion_r", "motion_l")
     skin : marker -> `personalize.skin.SkinThickness` under the pelvic markers
     mri_hip_scale : the MRI hip covariance scale in force
@@ -67,6 +69,7 @@ class JointEstimates:
     lines: dict = field(default_factory=dict)
     registrations: dict = field(default_factory=dict)
     pelvis: tuple | None = None
+    pelvis_bone: tuple | None = None
     notes: list = field(default_factory=list)
     sources: dict = field(default_factory=dict)
     hip_joint: Fused | None = None

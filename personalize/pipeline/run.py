@@ -78,7 +78,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     from ..outputs import replaced_dir
     from ..parameter_fusion import fuse_segment_lengths
     from .marker_assignment import model_markers
-    from .model import bone_meshes_lab, joints_on_bones, segment_placements
+    from .model import bone_meshes_lab, joints_on_bones, pelvis_bone_frame, segment_placements
     from .model_checks import bone_segment_lengths, check_model
     from .trials import chain_blend, solve_trials
 
@@ -96,6 +96,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     est = estimate_joints(inputs, bones.surfaces, bones.landmarks, joints, say, bones.dropped, skin=skin)
     gate_registrations(inputs, est, say)
     placements = segment_placements(est, joints)
+    est.pelvis_bone = pelvis_bone_frame(placements.get("pelvis"), bones.landmarks.bones.get("pelvis"))
     meshes_lab = bone_meshes_lab(bones.surfaces, placements, inputs.sides)
     markers = model_markers(inputs, meshes_lab)
     say("building the model")
