@@ -43,7 +43,7 @@ trial are `personalize.marker_registration`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import stats
@@ -158,6 +158,19 @@ class Registration:
     def translation_sd(self) -> np.ndarray:
         """(3,) sd (m) of the translation at the pivot `centre`."""
         return np.sqrt(np.diag(self.cov)[3:])
+
+    def as_matrix(self) -> np.ndarray:
+        """(4, 4) homogeneous scanner -> lab map [[R, t], [0, 1]]."""
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = self.R, self.t
+        return T
+
+    def shifted(self, d) -> "Registration":
+        """The map translated by d (3,) m in the lab: t + d, its pivot `centre` moved with it (so `cov` still
+        describes the same error) and the residuals those of the moved map; chi2 and the Mahalanobis distances
+        stay the fit's, which judged the correspondences before the shift."""
+        d = np.asarray(d, float).reshape(3)
+        return replace(self, t=self.t + d, centre=self.centre + d, residuals=self.residuals - d)
 
     def _jacobian(self, y: np.ndarray) -> np.ndarray:
         """∂y/∂x (3, 6) of a transferred lab point y: [-[y - c]×, I]."""

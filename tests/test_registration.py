@@ -97,6 +97,23 @@ def test_exact_data_recover_transform_exactly():
     assert reg.rms < 1e-9 and not reg.rejected
 
 
+def test_shifted_registration_moves_points_pivot_and_residuals():
+    rng = np.random.default_rng(3)
+    M = P0 @ R_TRUE.T + T_TRUE + rng.normal(0, 0.002, P0.shape)
+    names = list("abcdef")
+    reg = register_landmarks(P0, M, None, 0.002, names=names)
+    used = [names.index(n) for n in reg.names]
+    d = np.array([0.004, -0.010, 0.002])
+    moved = reg.shifted(d)
+    y, C = reg.transfer_point(P0[0])
+    y2, C2 = moved.transfer_point(P0[0])
+    np.testing.assert_allclose(y2, y + d, atol=1e-12)
+    np.testing.assert_allclose(C2, C, atol=1e-15)  # the same map error, pivot moved with it
+    np.testing.assert_allclose(moved.residuals, M[used] - (P0[used] @ moved.R.T + moved.t), atol=1e-9)
+    np.testing.assert_allclose(moved.as_matrix()[:3, 3], reg.t + d)
+    assert moved.chi2 == reg.chi2
+
+
 def test_outlier_rejected_and_transform_unbiased():
     """A 25 mm misplaced marker is rejected (named) in ≥ 90 % of draws; clean draws rarely lose a point."""
     rng = np.random.default_rng(2)

@@ -11,8 +11,6 @@ Plug-in-Gait ankle centre (else the malleolus-marker midpoint,
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from lowerlimb.errors import FitError, InputError
@@ -145,7 +143,7 @@ def estimate_foot_axes(ctx: JointContext, s: str, ankle: Fused, ankle_scale: flo
         est.notes.append(f"foot {S}: registered with the shank ({exc})")
     else:
         # on the model's ankle: the centre's residual would otherwise part the talus from the joint it hangs on
-        reg = replace(reg, t=reg.t + ankle.mean - (reg.R @ np.asarray(j_ankle.origin, float) + reg.t))
+        reg = reg.shifted(ankle.mean - (reg.R @ np.asarray(j_ankle.origin, float) + reg.t))
     lines = {}
     for jn in ("subtalar", "mtp"):
         j = ctx.joints.get(f"{jn}_{s}")

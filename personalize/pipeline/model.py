@@ -68,21 +68,19 @@ def _placed_on_joints(reg, mri_prox, lab_prox, mri_dist=None, lab_dist=None) -> 
     proximal MRI centre goes onto the model's.
     """
     R = reg.R
+    mri_mid, lab_mid = np.asarray(mri_prox, float), np.asarray(lab_prox, float)
     if mri_dist is not None and lab_dist is not None:
-        u = R @ (np.asarray(mri_dist, float) - np.asarray(mri_prox, float))
-        v = np.asarray(lab_dist, float) - np.asarray(lab_prox, float)
+        mri_dist, lab_dist = np.asarray(mri_dist, float), np.asarray(lab_dist, float)
+        u, v = R @ (mri_dist - mri_mid), lab_dist - lab_mid
         axis = np.cross(u, v)
         s, c = float(np.linalg.norm(axis)), float(u @ v)
         if s > 1e-12:
             R = Rotation.from_rotvec(axis / s * np.arctan2(s, c)).as_matrix() @ R
+        mri_mid, lab_mid = 0.5 * (mri_mid + mri_dist), 0.5 * (lab_mid + lab_dist)
     T = np.eye(4)
-    T[:3, :3] = R
-    mri_mid, lab_mid = np.asarray(mri_prox, float), np.asarray(lab_prox, float)
-    if mri_dist is not None and lab_dist is not None:
-        mri_mid, lab_mid = 0.5 * (mri_mid + np.asarray(mri_dist, float)), 0.5 * (lab_mid + np.asarray(lab_dist, float))
-    T[:3, 3] = lab_mid - R @ mri_mid
+    T[:3, :3], T[:3, 3] = R, lab_mid - R @ mri_mid
     if not np.all(np.isfinite(T)):
-        T[:3, :3], T[:3, 3] = reg.R, reg.t
+        T = reg.as_matrix()
     return T
 
 
@@ -109,8 +107,7 @@ def segment_placements(est: JointEstimates, joints: dict | None = None) -> dict:
     """
     placed = {}
     for seg, reg in est.registrations.items():
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = reg.R, reg.t
+        T = reg.as_matrix()
         bone, _, s = seg.partition("_")
         ends = {"femur": (("hip", s), ("knee", s)), "tibia": (("knee", s), ("ankle", s)),
                 "pelvis": tuple(("hip", side) for side in sorted(est.centres))}.get(bone, ())
