@@ -281,6 +281,33 @@ def _ankle_centre(tal, tib, fib, s):
     return rc.value, rc.cov_fit, spread, ru.value, sd, {"centre": rc.to_json("m"), "axis": ru.to_json("rad")}, fl
 
 
+#: model sd of each subtalar centre estimate across the axis, as a fraction of the talar facet radius: the
+#: talar facet's sphere centre is the joint's (the expert models place it there); the calcaneal facet is the
+#: other side of the same articulation, fitted on a shallower, rougher cap (chosen on ICL_MRI, where the two
+#: are 1.2 mm apart across the axis; checked on LHDL_CT 0.7 mm and MC22 1.3 / 3.0 mm; on TLEM2_MRI the
+#: talar facet's 9-13 mm sphere is 11-21 mm off the calcaneal one and is flagged)
+SUBTALAR_MODEL_SD = {"talar_facet": 0.04, "calcaneal_facet": 0.10}
+
+
+def _subtalar_centre(tal, ax):
+    """Subtalar origin on its axis from the talar posterior facet, cross-checked with the calcaneal facet.
+
+    Returns (origin, fit covariance, spread covariance or None, cross-check json or None, flags)."""
+    from personalize.landmarks.crosscheck import Estimate, cross_check
+
+    pf = tal.landmarks.get("posterior_facet_centre")
+    pf = tal.landmarks["talar_dome_centre"] if pf is None else pf
+    o = closest_on_line(ax.point, ax.direction, pf.position)
+    cf = tal.landmarks.get("calcaneal_facet_centre")
+    if cf is None or "posterior_facet_centre" not in tal.landmarks:
+        return o, pf.cov, None, None, ()
+    r = _radius("subtalar", None, tal)
+    rc = cross_check([Estimate("talar_facet", o, pf.cov, SUBTALAR_MODEL_SD["talar_facet"] * r),
+                      Estimate("calcaneal_facet", cf.position, cf.cov, SUBTALAR_MODEL_SD["calcaneal_facet"] * r,
+                               check=True)], plane_normal=ax.direction)
+    return rc.value, rc.cov_fit, rc.cov_spread, {"centre": rc.to_json("m")}, (() if rc.agree else ("low_confidence",))
+
+
 #: largest distance (m) between a joint centre and the neighbouring bone's articular landmark (tibial
 #: plateau centre for the knee, plafond centre or medial malleolus for the ankle) in an assembled set;
 #: farther, the two bones are not articulated in the input frame (scanned or exported apart) and the joint
@@ -477,17 +504,13 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 ax = tal.axes["subtalar_axis"]
                 # the posterior facet is the subtalar joint's main articulation; its sphere centre lies on the
                 # axis (which runs through it), as the hand-built ICL-MRI model places the joint
-                pf = tal.landmarks.get("posterior_facet_centre")
-                if pf is not None:
-                    o, cov = closest_on_line(ax.point, ax.direction, pf.position), pf.cov
-                else:
-                    ac = tal.landmarks["talar_dome_centre"]
-                    o, cov = closest_on_line(ax.point, ax.direction, ac.position), ac.cov
+                o, cov, spread, cross, fl = _subtalar_centre(tal, ax)
                 up = cal.frames["foot"]["rotation"][:, 1] if "foot" in cal.frames else tal.frames["anatomical"]["rotation"][:, 1]
                 R = frame_zy(ax.direction, up)
                 joints[j] = _joint(j, "subtalar", o, cov, JointFrame(f"talus_{s}", o.copy(), R.copy()),
-                                   JointFrame(f"calcn_{s}", o.copy(), R.copy()), ax.sd_deg, _flags(tal, cal),
-                                   _radius("subtalar", None, tal))
+                                   JointFrame(f"calcn_{s}", o.copy(), R.copy()), ax.sd_deg,
+                                   tuple(dict.fromkeys(_flags(tal, cal) + fl)), _radius("subtalar", None, tal),
+                                   spread, cross)
         # ---- mtp
         j = f"mtp_{s}"
         if need(j, f"calcn_{s}", f"toes_{s}"):

@@ -357,7 +357,7 @@ def _dome_zone(V, Nrm, f0, up_hint):
 
 
 def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
-    V, Nrm, A = surface.vertices, surface.normals, surface.areas
+    V, Nrm = surface.vertices, surface.normals
     q = (V - dome_p) @ ant
     # talar head: anterior block, normals pointing forward
     head_zone = (q > q.max() - 0.025) & (Nrm @ ant > 0.2)
@@ -377,36 +377,9 @@ def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
     near_cal = _near(surface, calcaneus, 0.006)
     if near_cal is not None and (near_cal & facet_zone).sum() >= 20:
         facet_zone &= near_cal
-    facet = None
-    if facet_zone.sum() >= 20:
-        # Concave facet: Hough votes along the normals, every peak refined with a
-        # narrow band and normals close to radial (a wide band lets the facet's rim
-        # and the surrounding convex underside drag the sphere to a larger radius);
-        # the sphere with the largest inlier area (points within FACET_INLIER of it,
-        # rms under 1.2 mm) wins: a fixed tolerance does not favour large radii.
-        peaks = hough_centres(V[facet_zone], Nrm[facet_zone], FACET_RADII, inward=True, tol=0.002,
-                              n_peaks=4, min_separation=0.008)
-        best = None
-        for _, c0, r0 in peaks:
-            try:
-                f, fsel = refine_sphere(V, Nrm, c0, r0, band=max(0.001, 0.03 * r0), convex=False,
-                                        min_cos=0.85, mask=facet_zone, iterations=6)
-            except FitError:
-                continue
-            # On a shallow, noisy cap the distance fit trades radius for centre
-            # height; the normals' common point is far better conditioned there.
-            f = _normal_line_sphere(V[fsel], Nrm[fsel], A[fsel])
-            below = (f.centre - (A[fsel] @ V[fsel]) / A[fsel].sum()) @ up < 0
-            if not (below and 0.008 < f.radius < FACET_MAX_RADIUS):
-                continue
-            inl = facet_zone & (np.abs(np.linalg.norm(V - f.centre, axis=1) - f.radius) < FACET_INLIER)
-            score = (float(A[inl].sum()) if f.rms < 0.0012 else 0.0, -f.rms)
-            if best is None or score > best[0]:
-                best = (score, f)
-        if best is not None:
-            facet = best[1]
-        else:
-            res.flag(FLAG_LOW_CONFIDENCE, "posterior talocalcaneal facet not found")
+    facet = _facet_sphere(surface, facet_zone, up, concave=True) if facet_zone.sum() >= 20 else None
+    if facet is None:
+        res.flag(FLAG_LOW_CONFIDENCE, "posterior talocalcaneal facet not found")
     if head is None or facet is None:
         res.flag(FLAG_LOW_CONFIDENCE, "subtalar axis not found")
         return
@@ -419,8 +392,56 @@ def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
     # the subtalar axis point closest to the dome centre (joint origin)
     o = fl.position + ((dome_p - fl.position) @ d) * d
     res.axes["subtalar_axis"] = Axis(point=o, direction=d, sd_deg=ax.sd_deg)
+    # the same joint seen from the calcaneus: its convex posterior talar facet (a check of the talar one)
+    if calcaneus is not None:
+        cq = (calcaneus.vertices - dome_p) @ ant
+        czone = (calcaneus.normals @ up > 0.3) & (cq < 0.01)
+        near_tal = _near(calcaneus, surface, 0.006)
+        if near_tal is not None:
+            czone &= near_tal
+        cf = _facet_sphere(calcaneus, czone, up, concave=False) if czone.sum() >= 20 else None
+        if cf is not None:
+            res.landmarks["calcaneal_facet_centre"] = Landmark(cf.centre.copy(), cf.cov)
+            res.fits["calcaneal_posterior_facet"] = {"type": "sphere", "centre": cf.centre.tolist(),
+                                                     "radius": float(cf.radius), "rms": float(cf.rms),
+                                                     "n_points": int(cf.n_points), "method": "normal lines",
+                                                     "surface": "calcaneus"}
     res.fits["talar_head"] = {"type": "sphere", "centre": hl.position.tolist(), "radius": float(head.radius),
                               "rms": float(head.rms), "converged": bool(head.converged)}
     res.fits["posterior_calcaneal_facet"] = {"type": "sphere", "centre": fl.position.tolist(),
                                              "radius": float(facet.radius), "rms": float(facet.rms),
                                              "n_points": int(facet.n_points), "method": "normal lines"}
+
+
+def _facet_sphere(surface, zone, up, concave: bool):
+    """Sphere of a posterior talocalcaneal facet (concave on the talus, convex on the calcaneus), or None.
+
+    Hough votes along the normals in `zone`, every peak refined with a narrow
+    band and normals close to radial (a wide band lets the facet's rim and the
+    surrounding underside drag the sphere to a larger radius), then its centre
+    taken as the normals' common point (`_normal_line_sphere`: on a shallow,
+    noisy cap the distance fit trades radius for centre height).  Kept: centre
+    on the bone's side of the facet (below the talar facet, inside the
+    calcaneus under the calcaneal one), radius 8 mm to `FACET_MAX_RADIUS`, rms
+    under 1.2 mm; the one with the largest inlier area (points within
+    `FACET_INLIER`) wins, so a fixed tolerance does not favour large radii.
+    """
+    V, Nrm, A = surface.vertices, surface.normals, surface.areas
+    peaks = hough_centres(V[zone], Nrm[zone], FACET_RADII, inward=concave, tol=0.002, n_peaks=4,
+                          min_separation=0.008)
+    best = None
+    for _, c0, r0 in peaks:
+        try:
+            _, fsel = refine_sphere(V, Nrm, c0, r0, band=max(0.001, 0.03 * r0), convex=not concave,
+                                    min_cos=0.85, mask=zone, iterations=6)
+        except FitError:
+            continue
+        f = _normal_line_sphere(V[fsel], Nrm[fsel], A[fsel])
+        below = (f.centre - (A[fsel] @ V[fsel]) / A[fsel].sum()) @ up < 0
+        if not (below and 0.008 < f.radius < FACET_MAX_RADIUS):
+            continue
+        inl = zone & (np.abs(np.linalg.norm(V - f.centre, axis=1) - f.radius) < FACET_INLIER)
+        score = (float(A[inl].sum()) if f.rms < 0.0012 else 0.0, -f.rms)
+        if best is None or score > best[0]:
+            best = (score, f)
+    return None if best is None else best[1]
