@@ -199,6 +199,9 @@ def test_point_cloud_files_are_read_and_surfaced(shared_data, tmp_path):
         assert nrm is None and np.allclose(got, pts, atol=1e-4), name
     surf, rep = reconstruct_surface(pts)
     assert surf.is_watertight and surf.volume == pytest.approx(mesh.volume, rel=0.03)
+    # reproducible to the vertex order (threaded Poisson reordered them, and the detectors thin by index)
+    again, _ = reconstruct_surface(pts)
+    assert np.array_equal(again.vertices, surf.vertices) and np.array_equal(again.faces, surf.faces)
     _, d, _ = trimesh.proximity.closest_point(mesh, surf.vertices)
     assert np.median(d) < 0.3 and rep["normals"] == "estimated"          # mm
     # the same cloud as a bone folder: read, reconstructed, sampling sd in metres (sub-millimetre here)

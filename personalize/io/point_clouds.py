@@ -102,8 +102,8 @@ def reconstruct_surface(points: np.ndarray, normals: np.ndarray | None = None, *
     source : path-like, optional
         Named in errors.
     seed : int
-        open3d's random state (Poisson is deterministic; kept for the
-        normal orientation's tie-breaks).
+        open3d's random state (Poisson runs on one thread and is then
+        deterministic; kept for the normal orientation's tie-breaks).
 
     Returns
     -------
@@ -136,8 +136,10 @@ def reconstruct_surface(points: np.ndarray, normals: np.ndarray | None = None, *
     pc.normals = o3d.utility.Vector3dVector(nrm)
     extent = float(np.max(pts.max(axis=0) - pts.min(axis=0)))
     depth = int(np.clip(np.ceil(np.log2(1.1 * extent / h)) + POISSON_EXTRA_DEPTH, 6, 11))
+    # one thread: open3d's threaded Poisson emits its vertices in a run-dependent order (and the detectors
+    # thin by index), so identical input gave landmarks mm apart; single-threaded it is also no slower here
     mesh, _dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=depth, scale=1.1,
-                                                                             linear_fit=True)
+                                                                             linear_fit=True, n_threads=1)
     v, f = np.asarray(mesh.vertices, float), np.asarray(mesh.triangles, np.int64)
     if len(f) == 0:
         raise InputError(source, "no surface could be reconstructed from the point cloud")
