@@ -18,7 +18,8 @@ from lowerlimb.errors import FitError, InputError
 from ..fusion import Fused, fuse_axis, fuse_intersection
 from ..registration import Registration
 from .joint_estimates import AxisEstimates, AxisLine, CentreEstimates, Direction, JointContext, JointEstimates
-from .knee import axis_sd, centre_model_error, centre_scale, condyle_labels, motion_centre
+from .knee import (SHANK_LANDMARKS, axis_sd, centre_model_error, centre_scale, condyle_labels, motion_centre,
+                   shank_markers_site)
 from .motion import MOTION_ANKLE_AXIS_SD_DEG, PIG_ANKLE_AXIS_SD_DEG
 from .segment_registration import register_with_centre, toe_landmark
 from .pig_uncertainty import pig_axis_sd_deg
@@ -71,12 +72,10 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
             "the MRI knee flexion axis carried by the femur registration (knee rotation between scanner and standing "
             f"sd {KNEE_STANDING_ROTATION_SD_DEG:g} deg; pipeline.virtual_markers)")
     reg = register_with_centre(f"tibia_{s}", ctx.bones, [f"tibia_{s}", f"fibula_{s}"],
-                               (f"{S}ANK", f"{S}MMA", f"{S}TTB", f"{S}HFB"), ctx.static, ctx.meshes, j_knee.centre,
+                               tuple(S + m for m in SHANK_LANDMARKS), ctx.static, ctx.meshes, j_knee.centre,
                                knee.gaussian.scaled(1.0 / knee_scale), axis=ctx.joint_axis(j_ankle),
                                fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)], extra=extra,
-                               # on the transmalleolar axis (Plug-in-Gait) the tips' projections, not the prominences
-                               sites={f"{S}ANK": "lateral_malleolus_tip", f"{S}MMA": "medial_malleolus_tip"}
-                               if ctx.markers_on_joint_axes else None, tissue_scale=ctx.tissue_scale(est))
+                               sites=shank_markers_site(ctx, s), tissue_scale=ctx.tissue_scale(est))
     scale = centre_scale(ctx, MRI_ANKLE_CENTRE_COV_SCALE, MRI_ANKLE_CENTRE_COV_SCALE_MEASURED)
     mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(
         centre_model_error(ctx, MRI_ANKLE_MODEL_SD, MRI_ANKLE_MODEL_SD_MEASURED))

@@ -3,7 +3,11 @@
 The femur is registered from its knee markers, projected on the MRI knee axis,
 and the fused hip centre; the MRI knee centre and axis reach the lab with the
 registration's covariance, scaled by the calibrated factors below (TRAINING
-phantoms; ``calibration.json``).  Motion: the SARA axis of the thigh and shank
+phantoms; ``calibration.json``).  The knee centre is a point of the tibia too:
+where the shank has three or more bony-landmark markers (`SHANK_LANDMARKS`),
+the tibia registered on them alone carries the MRI knee centre into the lab
+as well, and the two are fused (`shank_knee_centre`): the shank's markers are
+independent of the femur's and of the hip, whose error the femur carries down.  Motion: the SARA axis of the thigh and shank
 clusters (else the Plug-in-Gait femur axis, else the transepicondylar line) and
 the Plug-in-Gait knee centre of the static trial (else the midpoint of the
 epicondyle markers, `motion.condylar_centre`).  Centres are fused as Gaussians, axes on the sphere
@@ -17,8 +21,10 @@ import numpy as np
 
 from lowerlimb.errors import FitError, InputError
 
-from ..fusion import Fused, fuse_axis, fuse_intersection
-from ..registration import Registration
+from lowerlimb.estimates import Gaussian
+
+from ..fusion import Fused, fuse_axis, fuse_gaussian, fuse_intersection
+from ..registration import GATE_P, Registration, gate_statistic
 from .joint_estimates import AxisEstimates, CentreEstimates, Direction, JointContext, JointEstimates
 from .motion import (CONDYLES, PIG_KNEE_AXIS_SD_DEG, SHANK_MARKERS, THIGH_MARKERS, condylar_axis, condylar_centre,
                      motion_knee_axis, subject_marker_radius)
@@ -28,8 +34,8 @@ from .virtual_markers import STANDING_HIP_ROTATION_SD_DEG, virtual_medial_knee
 
 __all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_AXIS_MODEL_SD_DEG", "MRI_KNEE_AXIS_MODEL_SD_DEG_MEASURED",
            "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "MRI_KNEE_MODEL_SD", "MRI_KNEE_MODEL_SD_MEASURED",
-           "MOTION_KNEE_MODEL_SD",
-           "estimate_knee"]
+           "MOTION_KNEE_MODEL_SD", "SHANK_LANDMARKS",
+           "estimate_knee", "shank_knee_centre"]
 
 #: scale of the femur-registration knee axis sd: the claimed 2.2 deg median vs 0.34 deg rms actual on 24 TRAINING
 #: phantom subjects (their knee markers sit exactly on the flexion axis; calibration.json)
@@ -57,6 +63,39 @@ MOTION_KNEE_MODEL_SD = 0.0
 #: model-error sd (m per axis) added to the MRI knee centre covariance with the pelvic tissue measured (realistic
 #: phantoms' analytic subjects, benchmarks/realistic_calibration.py; calibration.json)
 MRI_KNEE_MODEL_SD_MEASURED = 0.00061
+
+
+#: the shank's bony-landmark markers (side letter dropped): lateral and medial malleolus, tibial tuberosity, fibular head
+SHANK_LANDMARKS = ("ANK", "MMA", "TTB", "HFB")
+
+
+def shank_markers_site(ctx: JointContext, s: str) -> dict | None:
+    """Malleolus markers on the transmalleolar axis (Plug-in-Gait) sit over the tips' projections, not the prominences."""
+    S = s.upper()
+    return {f"{S}ANK": "lateral_malleolus_tip", f"{S}MMA": "medial_malleolus_tip"} if ctx.markers_on_joint_axes else None
+
+
+def shank_knee_centre(ctx: JointContext, s: str, est: JointEstimates) -> Gaussian | None:
+    """The MRI knee centre carried into the lab by the tibia registered on its own bony markers, or None.
+
+    Needs at least three of `SHANK_LANDMARKS` in the static trial and the MRI, and a registration that passes its
+    chi-square gate (`registration.GATE_P`); no joint centre anchors it, so its error is independent of the hip's
+    and of the femur's markers.  The covariance is the registration's, uncalibrated (the caller scales it).
+    """
+    S = s.upper()
+    names = tuple(S + m for m in SHANK_LANDMARKS)
+    if sum(n in ctx.static for n in names) < 3:
+        return None
+    j_knee, j_ankle = ctx.joints[f"knee_{s}"], ctx.joints[f"ankle_{s}"]
+    try:
+        reg = register_with_centre(f"tibia_{s}", ctx.bones, [f"tibia_{s}", f"fibula_{s}"], names, ctx.static,
+                                   ctx.meshes, None, None, axis=ctx.joint_axis(j_ankle), sites=shank_markers_site(ctx, s),
+                                   tissue_scale=ctx.tissue_scale(est))
+    except InputError:
+        return None
+    if len(reg.names) < 3 or gate_statistic(reg)[2] < GATE_P:
+        return None
+    return reg.transfer_estimate(j_knee.centre)
 
 
 def centre_model_error(ctx: JointContext, sd: float, sd_measured: float) -> np.ndarray:
@@ -133,8 +172,13 @@ def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
                                axis=ctx.joint_axis(j_knee), fallback=[(f"{kind}_knee_centre", j_knee.centre, pig)],
                                tissue_scale=ctx.tissue_scale(est))
     scale = centre_scale(ctx, MRI_KNEE_CENTRE_COV_SCALE, MRI_KNEE_CENTRE_COV_SCALE_MEASURED)
-    mri = reg.transfer_estimate(j_knee.centre).scaled(scale).inflated(
-        centre_model_error(ctx, MRI_KNEE_MODEL_SD, MRI_KNEE_MODEL_SD_MEASURED))
+    model = centre_model_error(ctx, MRI_KNEE_MODEL_SD, MRI_KNEE_MODEL_SD_MEASURED)
+    mri = reg.transfer_estimate(j_knee.centre).scaled(scale).inflated(model)
+    shank = shank_knee_centre(ctx, s, est)
+    if shank is not None:
+        mri = fuse_gaussian([mri, shank.scaled(scale).inflated(model)], ("femur", "tibia")).gaussian
+        est.sources[f"knee_centre_{s}_mri"] = ("MRI knee centre carried by the femur registration (knee markers and the "
+                                               "fused hip) and by the tibia's own bony markers, fused")
     u, sd, _ = reg.transfer_direction(j_knee.axis, j_knee.axis_sd_deg)
     mri_axis = Direction(u, axis_sd(ctx, sd * MRI_KNEE_AXIS_SD_SCALE, MRI_KNEE_AXIS_MODEL_SD_DEG,
                                     MRI_KNEE_AXIS_MODEL_SD_DEG_MEASURED))
