@@ -1,7 +1,9 @@
 """The ankle centre and axis (MRI and motion, fused), and the subtalar and metatarsophalangeal axes (MRI, else defaults).
 
 The shank is registered from its ankle markers, projected on the MRI ankle
-axis, and the fused knee centre; the foot from its heel and metatarsal markers
+axis, and the fused knee centre; where the foot has three or more bony-landmark
+markers, the foot registered on them alone carries the MRI ankle centre too and
+the two are fused (`foot_ankle_centre`); the foot from its heel and metatarsal markers
 (TOE over the second metatarsal head), the fused ankle centre
 and the shank's ankle axis (else it follows the shank).  Motion: the transmalleolar axis ANK - MMA
 of the static trial (else the Plug-in-Gait torsioned tibia) and the
@@ -15,18 +17,20 @@ import numpy as np
 
 from lowerlimb.errors import FitError, InputError
 
-from ..fusion import Fused, fuse_axis, fuse_intersection
+from lowerlimb.estimates import Gaussian
+
+from ..fusion import Fused, fuse_axis, fuse_gaussian, fuse_intersection
 from ..registration import Registration
 from .joint_estimates import AxisEstimates, AxisLine, CentreEstimates, Direction, JointContext, JointEstimates
 from .knee import (SHANK_LANDMARKS, axis_sd, centre_model_error, centre_scale, condyle_labels, motion_centre,
                    shank_markers_site)
 from .motion import MOTION_ANKLE_AXIS_SD_DEG, PIG_ANKLE_AXIS_SD_DEG
-from .segment_registration import register_with_centre, toe_landmark
+from .segment_registration import carried_by_own_markers, register_with_centre, toe_landmark
 from .pig_uncertainty import pig_axis_sd_deg
 from .virtual_markers import FOOT_STANDING_ROTATION_SD_DEG, KNEE_STANDING_ROTATION_SD_DEG, ankle_axis_pairs, knee_axis_pairs
 
 __all__ = ["MRI_ANKLE_AXIS_SD_SCALE", "MRI_ANKLE_AXIS_MODEL_SD_DEG", "MRI_ANKLE_AXIS_MODEL_SD_DEG_MEASURED", "MRI_ANKLE_CENTRE_COV_SCALE", "MRI_ANKLE_CENTRE_COV_SCALE_MEASURED",
-           "SUBTALAR_DEFAULT", "estimate_ankle", "estimate_foot_axes", "MRI_ANKLE_MODEL_SD",
+           "SUBTALAR_DEFAULT", "FOOT_LANDMARKS", "estimate_ankle", "foot_ankle_centre", "estimate_foot_axes", "MRI_ANKLE_MODEL_SD",
            "MRI_ANKLE_MODEL_SD_MEASURED", "MOTION_ANKLE_MODEL_SD"]
 
 #: scale of the shank-registration ankle axis sd: claimed median 3.5 deg vs actual median 0.75 deg on 24 TRAINING
@@ -57,6 +61,21 @@ MOTION_ANKLE_MODEL_SD = 0.0
 SUBTALAR_DEFAULT = (42.0, 23.0)
 
 
+#: the foot's bony-landmark markers (side letter dropped): heel, first and fifth metatarsal heads, toe
+FOOT_LANDMARKS = ("HEE", "D1M", "D5M", "TOE")
+
+
+def foot_ankle_centre(ctx: JointContext, s: str, est: JointEstimates) -> Gaussian | None:
+    """The MRI ankle centre carried into the lab by the foot registered on its own bony markers (three or more of
+    `FOOT_LANDMARKS`; `segment_registration.carried_by_own_markers`), or None: independent of the shank's markers
+    and of the knee.  The talus is taken with the calcaneus as it was scanned."""
+    S = s.upper()
+    return carried_by_own_markers(f"calcn_{s}", ctx.bones, [f"calcn_{s}", f"talus_{s}", f"toes_{s}"],
+                                  tuple(S + m for m in FOOT_LANDMARKS), ctx.static, ctx.meshes,
+                                  ctx.joints[f"ankle_{s}"].centre, virtual=toe_landmark(ctx.bones.get(f"calcn_{s}"), S),
+                                  tissue_scale=ctx.tissue_scale(est))
+
+
 def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
                    est: JointEstimates) -> tuple[Registration, CentreEstimates, AxisEstimates, float]:
     """Shank registration, ankle centre and axis estimates of side `s`; returns them and the centre scale in force."""
@@ -77,8 +96,13 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
                                fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)], extra=extra,
                                sites=shank_markers_site(ctx, s), tissue_scale=ctx.tissue_scale(est))
     scale = centre_scale(ctx, MRI_ANKLE_CENTRE_COV_SCALE, MRI_ANKLE_CENTRE_COV_SCALE_MEASURED)
-    mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(
-        centre_model_error(ctx, MRI_ANKLE_MODEL_SD, MRI_ANKLE_MODEL_SD_MEASURED))
+    model = centre_model_error(ctx, MRI_ANKLE_MODEL_SD, MRI_ANKLE_MODEL_SD_MEASURED)
+    mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(model)
+    foot = foot_ankle_centre(ctx, s, est)
+    if foot is not None:
+        mri = fuse_gaussian([mri, foot.scaled(scale).inflated(model)], ("tibia", "foot")).gaussian
+        est.sources[f"ankle_centre_{s}_mri"] = ("MRI ankle centre carried by the shank registration (ankle markers and "
+                                                "the fused knee) and by the foot's own bony markers, fused")
     u, sd, _ = reg.transfer_direction(j_ankle.axis, j_ankle.axis_sd_deg)
     mri_axis = Direction(u, axis_sd(ctx, sd * MRI_ANKLE_AXIS_SD_SCALE, MRI_ANKLE_AXIS_MODEL_SD_DEG,
                                     MRI_ANKLE_AXIS_MODEL_SD_DEG_MEASURED))

@@ -24,12 +24,12 @@ from lowerlimb.errors import FitError, InputError
 from lowerlimb.estimates import Gaussian
 
 from ..fusion import Fused, fuse_axis, fuse_gaussian, fuse_intersection
-from ..registration import GATE_P, Registration, gate_statistic
+from ..registration import Registration
 from .joint_estimates import AxisEstimates, CentreEstimates, Direction, JointContext, JointEstimates
 from .motion import (CONDYLES, PIG_KNEE_AXIS_SD_DEG, SHANK_MARKERS, THIGH_MARKERS, condylar_axis, condylar_centre,
                      motion_knee_axis, subject_marker_radius)
 from .pig_uncertainty import pig_axis_sd_deg, pig_centre_propagated
-from .segment_registration import register_with_centre
+from .segment_registration import carried_by_own_markers, register_with_centre
 from .virtual_markers import STANDING_HIP_ROTATION_SD_DEG, virtual_medial_knee
 
 __all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_AXIS_MODEL_SD_DEG", "MRI_KNEE_AXIS_MODEL_SD_DEG_MEASURED",
@@ -76,26 +76,14 @@ def shank_markers_site(ctx: JointContext, s: str) -> dict | None:
 
 
 def shank_knee_centre(ctx: JointContext, s: str, est: JointEstimates) -> Gaussian | None:
-    """The MRI knee centre carried into the lab by the tibia registered on its own bony markers, or None.
-
-    Needs at least three of `SHANK_LANDMARKS` in the static trial and the MRI, and a registration that passes its
-    chi-square gate (`registration.GATE_P`); no joint centre anchors it, so its error is independent of the hip's
-    and of the femur's markers.  The covariance is the registration's, uncalibrated (the caller scales it).
-    """
+    """The MRI knee centre carried into the lab by the tibia registered on its own bony markers (three or more of
+    `SHANK_LANDMARKS`; `segment_registration.carried_by_own_markers`), or None: independent of the hip's error and
+    of the femur's markers."""
     S = s.upper()
-    names = tuple(S + m for m in SHANK_LANDMARKS)
-    if sum(n in ctx.static for n in names) < 3:
-        return None
-    j_knee, j_ankle = ctx.joints[f"knee_{s}"], ctx.joints[f"ankle_{s}"]
-    try:
-        reg = register_with_centre(f"tibia_{s}", ctx.bones, [f"tibia_{s}", f"fibula_{s}"], names, ctx.static,
-                                   ctx.meshes, None, None, axis=ctx.joint_axis(j_ankle), sites=shank_markers_site(ctx, s),
-                                   tissue_scale=ctx.tissue_scale(est))
-    except InputError:
-        return None
-    if len(reg.names) < 3 or gate_statistic(reg)[2] < GATE_P:
-        return None
-    return reg.transfer_estimate(j_knee.centre)
+    return carried_by_own_markers(f"tibia_{s}", ctx.bones, [f"tibia_{s}", f"fibula_{s}"],
+                                  tuple(S + m for m in SHANK_LANDMARKS), ctx.static, ctx.meshes,
+                                  ctx.joints[f"knee_{s}"].centre, axis=ctx.joint_axis(ctx.joints[f"ankle_{s}"]),
+                                  sites=shank_markers_site(ctx, s), tissue_scale=ctx.tissue_scale(est))
 
 
 def centre_model_error(ctx: JointContext, sd: float, sd_measured: float) -> np.ndarray:

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from lowerlimb.errors import InputError
+from lowerlimb.errors import FitError, InputError
 from lowerlimb.estimates import Gaussian
 
 from ..marker_registration import marker_correspondences
-from ..registration import Registration, scaled_skin_prior
+from ..registration import GATE_P, Registration, gate_statistic, scaled_skin_prior
 
-__all__ = ["register_with_centre", "toe_landmark"]
+__all__ = ["register_with_centre", "carried_by_own_markers", "toe_landmark"]
 
 
 def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static: dict, meshes: dict,
@@ -57,6 +57,27 @@ def register_with_centre(seg: str, bones: dict, bone_names, marker_names, static
     if len(corr) < 3:
         raise InputError(seg, f"only {len(corr)} correspondences ({', '.join(corr.names) or 'none'}) to register the segment")
     return corr.register(seg, fixed=("joint_centre", *(name for name, _, _ in extra)))
+
+
+def carried_by_own_markers(seg: str, bones: dict, bone_names, marker_names, static: dict, meshes: dict, point, *,
+                           axis=None, sites=None, virtual=None, tissue_scale=None) -> Gaussian | None:
+    """`point` (scanner frame) carried into the lab by segment `seg` registered on its own bony markers alone.
+
+    A joint centre is a point of both its bones; the distal bone registered without the proximal joint's anchor
+    gives an estimate whose error is independent of the proximal chain's.  None when fewer than three of
+    `marker_names` pair with MRI landmarks or the registration fails its chi-square gate (`registration.GATE_P`).
+    The covariance is the registration's, uncalibrated (the caller scales it).
+    """
+    if sum(n in static for n in marker_names) < 3:
+        return None
+    try:
+        reg = register_with_centre(seg, bones, bone_names, marker_names, static, meshes, None, None, axis=axis,
+                                   sites=sites, virtual=virtual, tissue_scale=tissue_scale)
+    except (InputError, FitError):
+        return None
+    if len(reg.names) < 3 or gate_statistic(reg)[2] < GATE_P:
+        return None
+    return reg.transfer_estimate(point)
 
 
 def toe_landmark(calcn, S: str) -> dict:
