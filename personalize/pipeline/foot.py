@@ -19,11 +19,11 @@ from lowerlimb.errors import FitError, InputError
 
 from lowerlimb.estimates import Gaussian
 
-from ..fusion import Fused, fuse_axis, fuse_gaussian, fuse_intersection
+from ..fusion import Fused, fuse_axis, fuse_intersection
 from ..registration import Registration
 from .joint_estimates import AxisEstimates, AxisLine, CentreEstimates, Direction, JointContext, JointEstimates
 from .knee import (SHANK_LANDMARKS, axis_sd, centre_model_error, centre_scale, condyle_labels, motion_centre,
-                   shank_markers_site)
+                   mri_centre, shank_markers_site)
 from .motion import MOTION_ANKLE_AXIS_SD_DEG, PIG_ANKLE_AXIS_SD_DEG
 from .segment_registration import carried_by_own_markers, register_with_centre, toe_landmark
 from .pig_uncertainty import pig_axis_sd_deg
@@ -96,13 +96,10 @@ def estimate_ankle(ctx: JointContext, s: str, knee: Fused, knee_scale: float,
                                fallback=[(f"{kind}_ankle_centre", j_ankle.centre, pig)], extra=extra,
                                sites=shank_markers_site(ctx, s), tissue_scale=ctx.tissue_scale(est))
     scale = centre_scale(ctx, MRI_ANKLE_CENTRE_COV_SCALE, MRI_ANKLE_CENTRE_COV_SCALE_MEASURED)
-    model = centre_model_error(ctx, MRI_ANKLE_MODEL_SD, MRI_ANKLE_MODEL_SD_MEASURED)
-    mri = reg.transfer_estimate(j_ankle.centre).scaled(scale).inflated(model)
-    foot = foot_ankle_centre(ctx, s, est)
-    if foot is not None:
-        mri = fuse_gaussian([mri, foot.scaled(scale).inflated(model)], ("tibia", "foot")).gaussian
-        est.sources[f"ankle_centre_{s}_mri"] = ("MRI ankle centre carried by the shank registration (ankle markers and "
-                                                "the fused knee) and by the foot's own bony markers, fused")
+    mri = mri_centre(reg, j_ankle.centre, scale, centre_model_error(ctx, MRI_ANKLE_MODEL_SD, MRI_ANKLE_MODEL_SD_MEASURED),
+                     foot_ankle_centre(ctx, s, est), est, f"ankle_centre_{s}_mri",
+                     "MRI ankle centre carried by the shank registration (ankle markers and the fused knee) and by "
+                     "the foot's own bony markers, fused")
     u, sd, _ = reg.transfer_direction(j_ankle.axis, j_ankle.axis_sd_deg)
     mri_axis = Direction(u, axis_sd(ctx, sd * MRI_ANKLE_AXIS_SD_SCALE, MRI_ANKLE_AXIS_MODEL_SD_DEG,
                                     MRI_ANKLE_AXIS_MODEL_SD_DEG_MEASURED))

@@ -35,7 +35,7 @@ from .virtual_markers import STANDING_HIP_ROTATION_SD_DEG, virtual_medial_knee
 __all__ = ["MRI_KNEE_AXIS_SD_SCALE", "MRI_KNEE_AXIS_MODEL_SD_DEG", "MRI_KNEE_AXIS_MODEL_SD_DEG_MEASURED",
            "MRI_KNEE_CENTRE_COV_SCALE", "MRI_KNEE_CENTRE_COV_SCALE_MEASURED", "MRI_KNEE_MODEL_SD", "MRI_KNEE_MODEL_SD_MEASURED",
            "MOTION_KNEE_MODEL_SD", "SHANK_LANDMARKS",
-           "estimate_knee", "shank_knee_centre"]
+           "estimate_knee", "mri_centre", "shank_knee_centre"]
 
 #: scale of the femur-registration knee axis sd: the claimed 2.2 deg median vs 0.34 deg rms actual on 24 TRAINING
 #: phantom subjects (their knee markers sit exactly on the flexion axis; calibration.json)
@@ -84,6 +84,18 @@ def shank_knee_centre(ctx: JointContext, s: str, est: JointEstimates) -> Gaussia
                                   tuple(S + m for m in SHANK_LANDMARKS), ctx.static, ctx.meshes,
                                   ctx.joints[f"knee_{s}"].centre, axis=ctx.joint_axis(ctx.joints[f"ankle_{s}"]),
                                   sites=shank_markers_site(ctx, s), tissue_scale=ctx.tissue_scale(est))
+
+
+def mri_centre(reg: Registration, centre: Gaussian, scale: float, model: np.ndarray, distal: Gaussian | None,
+               est: JointEstimates, key: str, described: str) -> Gaussian:
+    """The MRI joint `centre` carried by `reg`, its covariance scaled by the calibrated `scale` plus the `model`
+    error; fused (product of Gaussians) with the distal bone's own estimate `distal` under the same scale and model
+    error when there is one, its source then `described` under ``est.sources[key]``."""
+    g = reg.transfer_estimate(centre).scaled(scale).inflated(model)
+    if distal is None:
+        return g
+    est.sources[key] = described
+    return fuse_gaussian([g, distal.scaled(scale).inflated(model)]).gaussian
 
 
 def centre_model_error(ctx: JointContext, sd: float, sd_measured: float) -> np.ndarray:
@@ -160,13 +172,10 @@ def estimate_knee(ctx: JointContext, s: str, hip: Fused, hip_scale: float,
                                axis=ctx.joint_axis(j_knee), fallback=[(f"{kind}_knee_centre", j_knee.centre, pig)],
                                tissue_scale=ctx.tissue_scale(est))
     scale = centre_scale(ctx, MRI_KNEE_CENTRE_COV_SCALE, MRI_KNEE_CENTRE_COV_SCALE_MEASURED)
-    model = centre_model_error(ctx, MRI_KNEE_MODEL_SD, MRI_KNEE_MODEL_SD_MEASURED)
-    mri = reg.transfer_estimate(j_knee.centre).scaled(scale).inflated(model)
-    shank = shank_knee_centre(ctx, s, est)
-    if shank is not None:
-        mri = fuse_gaussian([mri, shank.scaled(scale).inflated(model)], ("femur", "tibia")).gaussian
-        est.sources[f"knee_centre_{s}_mri"] = ("MRI knee centre carried by the femur registration (knee markers and the "
-                                               "fused hip) and by the tibia's own bony markers, fused")
+    mri = mri_centre(reg, j_knee.centre, scale, centre_model_error(ctx, MRI_KNEE_MODEL_SD, MRI_KNEE_MODEL_SD_MEASURED),
+                     shank_knee_centre(ctx, s, est), est, f"knee_centre_{s}_mri",
+                     "MRI knee centre carried by the femur registration (knee markers and the fused hip) and by the "
+                     "tibia's own bony markers, fused")
     u, sd, _ = reg.transfer_direction(j_knee.axis, j_knee.axis_sd_deg)
     mri_axis = Direction(u, axis_sd(ctx, sd * MRI_KNEE_AXIS_SD_SCALE, MRI_KNEE_AXIS_MODEL_SD_DEG,
                                     MRI_KNEE_AXIS_MODEL_SD_DEG_MEASURED))
