@@ -3,8 +3,8 @@
 The shank is registered from its ankle markers, projected on the MRI ankle
 axis, and the fused knee centre; where the foot has three or more bony-landmark
 markers, the foot registered on them alone carries the MRI ankle centre too and
-the two are fused (`foot_ankle_centre`); the foot from its heel and metatarsal markers
-(TOE over the second metatarsal head), the fused ankle centre
+the two are fused (`foot_ankle_centre`).  The foot is registered from its heel
+and metatarsal markers (TOE over the second metatarsal head), the fused ankle centre
 and the shank's ankle axis (else it follows the shank).  Motion: the transmalleolar axis ANK - MMA
 of the static trial (else the Plug-in-Gait torsioned tibia) and the
 Plug-in-Gait ankle centre (else the malleolus-marker midpoint,
@@ -16,7 +16,6 @@ from __future__ import annotations
 import numpy as np
 
 from lowerlimb.errors import FitError, InputError
-
 from lowerlimb.estimates import Gaussian
 
 from ..fusion import Fused, fuse_axis, fuse_intersection

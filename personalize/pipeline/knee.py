@@ -7,8 +7,8 @@ phantoms; ``calibration.json``).  The knee centre is a point of the tibia too:
 where the shank has three or more bony-landmark markers (`SHANK_LANDMARKS`),
 the tibia registered on them alone carries the MRI knee centre into the lab
 as well, and the two are fused (`shank_knee_centre`): the shank's markers are
-independent of the femur's and of the hip, whose error the femur carries down.  Motion: the SARA axis of the thigh and shank
-clusters (else the Plug-in-Gait femur axis, else the transepicondylar line) and
+independent of the femur's and of the hip, whose error the femur carries down.
+Motion: the SARA axis of the thigh and shank clusters (else the Plug-in-Gait femur axis, else the transepicondylar line) and
 the Plug-in-Gait knee centre of the static trial (else the midpoint of the
 epicondyle markers, `motion.condylar_centre`).  Centres are fused as Gaussians, axes on the sphere
 (`personalize.fusion`).
@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from lowerlimb.errors import FitError, InputError
-
 from lowerlimb.estimates import Gaussian
 
 from ..fusion import Fused, fuse_axis, fuse_gaussian, fuse_intersection
