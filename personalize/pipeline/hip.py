@@ -1,7 +1,9 @@
 """The hip centres: MRI (pelvis registration) and motion (SCoRE, else Davis), fused jointly for both sides.
 
 MRI: the hip centre's error is the pelvis registration's (the femoral head
-centre itself is found to ~0.1 mm); the registration's propagated covariance
+centre itself is found to ~0.1 mm), and where the femur has its KNE, MFC and
+TRO markers the femur registered on them alone observes the same centre
+independently (`femur_hip_centre`); the registration's propagated covariance
 (per-site soft-tissue prior sd, `kinematics.gait.soft_tissue`: ASIS 9.7 ± 7.0 mm,
 PSIS 19.6 ± 10.9 mm; marker placement sd; landmark covariances) keeps its
 structure and its cross-covariance between the two hips (one shared
@@ -29,10 +31,11 @@ from lowerlimb.estimates import Gaussian
 
 from ..fusion import Fused, fuse_linear
 from .joint_estimates import CentreEstimates, JointContext, JointEstimates
+from .segment_registration import carried_by_own_markers
 from .motion import (DAVIS_HIP_SD, FUNCTIONAL_HIP_MIN_RANGE_DEG, HARRINGTON_SD, PELVIS_CLUSTER, THIGH_MARKERS,
                      harrington_hip, hip_range_of_motion, motion_hip, pelvis_rear, subject_marker_radius)
 
-__all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD", "MRI_HIP_MODEL_SD_MEASURED", "MOTION_HIP_MODEL_SD", "fuse_hips", "estimate_hips", "hip_motion_trial"]
+__all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD", "MRI_HIP_MODEL_SD_MEASURED", "MOTION_HIP_MODEL_SD", "FEMUR_LANDMARKS", "fuse_hips", "femur_hip_centre", "estimate_hips", "hip_motion_trial"]
 
 #: variance scale of the registration-propagated MRI hip covariance with prior (estimated) soft tissue, with
 #: `MRI_HIP_MODEL_SD`: maximum likelihood of the MRI hip errors of the realistic phantoms (palpated markers, child /
@@ -55,7 +58,8 @@ MRI_HIP_MODEL_SD_MEASURED = 0.00152
 MOTION_HIP_MODEL_SD = 0.01517
 
 
-def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None = None, model_sd: float = 0.0):
+def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None = None, model_sd: float = 0.0,
+              femur: dict | None = None):
     """Joint Gaussian fusion of both hip centres from one pelvis registration and per-side motion centres.
 
     Model: z_mri = (h_r, h_l) + e_mri with e_mri ~ N(0, k C₆), C₆ the
@@ -66,7 +70,10 @@ def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None 
     least-squares solution (`personalize.fusion.fuse_linear`) minimises
     (z - H h)ᵀ Σ⁻¹ (z - H h) over h = (h_r, h_l).
     k defaults to `MRI_HIP_COV_SCALE`; ``model_sd`` σ adds σ² I to k C₆ (the model-error term calibrated on
-    the realistic phantoms, `MRI_HIP_MODEL_SD`).
+    the realistic phantoms, `MRI_HIP_MODEL_SD`).  ``femur``: {side: `Gaussian`} the hip centre as the femur
+    registered on its own bony markers carries it (`femur_hip_centre`, lab frame, covariance as stated), a
+    further MRI observation z_fem,s = h_s + e_fem,s independent of the pelvis registration; the MRI source is
+    then the GLS fusion of the pelvis pair and these.
 
     Parameters
     ----------
@@ -88,7 +95,13 @@ def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None 
     # see a rotation about the line through them, so the registration part is singular along that direction
     C = mri_scale * C + (1e-8 + float(model_sd) ** 2) * np.eye(3 * n)
     H = np.eye(3 * n)
-    obs = [(np.concatenate([ys[s] for s in sides]), C, H)]
+    z = np.concatenate([ys[s] for s in sides])
+    extra = [(femur[s].mean, femur[s].cov, H[3 * i:3 * i + 3]) for i, s in enumerate(sides) if s in (femur or {})]
+    if extra:
+        both = fuse_linear([(z, C, H)] + extra)
+        z, C = both.mean, both.cov
+        ys = {s: z[3 * i:3 * i + 3] for i, s in enumerate(sides)}
+    obs = [(z, C, H)]
     names = ["mri"]
     for i, s in enumerate(sides):
         obs.append((motion[s].mean, motion[s].cov, H[3 * i:3 * i + 3]))
@@ -113,6 +126,23 @@ def _skin_of(est: JointEstimates) -> dict:
         if t is not None and sd is not None and np.isfinite(t) and np.isfinite(sd):
             out[k] = (float(t), float(sd))
     return out
+
+
+#: the femur's bony-landmark markers (side letter dropped): lateral and medial epicondyle, greater trochanter
+FEMUR_LANDMARKS = ("KNE", "MFC", "TRO")
+
+
+def femur_hip_centre(ctx: JointContext, s: str, est: JointEstimates) -> Gaussian | None:
+    """The MRI hip centre carried into the lab by the femur registered on its own bony markers (all of
+    `FEMUR_LANDMARKS`; `segment_registration.carried_by_own_markers`), or None: independent of the pelvis
+    registration."""
+    S = s.upper()
+    names = tuple(S + m for m in FEMUR_LANDMARKS)
+    if not all(n in ctx.static for n in names):
+        return None
+    return carried_by_own_markers(f"femur_{s}", ctx.bones, [f"femur_{s}"], names, ctx.static, ctx.meshes,
+                                  ctx.joints[f"hip_{s}"].centre, axis=ctx.joint_axis(ctx.joints[f"knee_{s}"]),
+                                  tissue_scale=ctx.tissue_scale(est))
 
 
 def hip_motion_trial(ctx: JointContext, s: str, pelvis_axes, pelvis, thigh):
@@ -172,9 +202,16 @@ def estimate_hips(ctx: JointContext, reg_pelvis, pelvis_axes, est: JointEstimate
                     f"sd {HARRINGTON_SD * 1e3:.1f} mm per axis after Mantovani et al. 2016, plus the soft tissue's)")
                 used = "Harrington regression"
             est.notes.append(f"hip {s.upper()}: no functional hip centre ({exc}); {used} used")
+    model_sd = MRI_HIP_MODEL_SD_MEASURED if ctx.tissue_measured else MRI_HIP_MODEL_SD
+    femur = {}
+    for s in ctx.inputs.sides:
+        g = femur_hip_centre(ctx, s, est)
+        if g is not None:
+            femur[s] = g.scaled(est.mri_hip_scale).inflated((1e-8 + model_sd ** 2) * np.eye(3))
+            est.sources[f"hip_centre_{s}_mri"] = ("MRI hip centre carried by the pelvis registration and by the femur's "
+                                                  "own bony markers, fused")
     # both hips at once: their MRI estimates share the pelvis registration error
     mri, fused, est.hip_joint = fuse_hips(reg_pelvis, hips_scanner, hip_motion, mri_scale=est.mri_hip_scale,
-                                          model_sd=MRI_HIP_MODEL_SD_MEASURED if ctx.tissue_measured
-                                          else MRI_HIP_MODEL_SD)
+                                          model_sd=model_sd, femur=femur)
     for s in ctx.inputs.sides:
         est.centres.setdefault(s, {})["hip"] = CentreEstimates(mri[s], hip_motion[s], fused[s])
