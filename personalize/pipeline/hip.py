@@ -137,10 +137,8 @@ def femur_hip_centre(ctx: JointContext, s: str, est: JointEstimates) -> Gaussian
     `FEMUR_LANDMARKS`; `segment_registration.carried_by_own_markers`), or None: independent of the pelvis
     registration."""
     S = s.upper()
-    names = tuple(S + m for m in FEMUR_LANDMARKS)
-    if not all(n in ctx.static for n in names):
-        return None
-    return carried_by_own_markers(f"femur_{s}", ctx.bones, [f"femur_{s}"], names, ctx.static, ctx.meshes,
+    return carried_by_own_markers(f"femur_{s}", ctx.bones, [f"femur_{s}"], tuple(S + m for m in FEMUR_LANDMARKS),
+                                  ctx.static, ctx.meshes,
                                   ctx.joints[f"hip_{s}"].centre, axis=ctx.joint_axis(ctx.joints[f"knee_{s}"]),
                                   tissue_scale=ctx.tissue_scale(est))
 
