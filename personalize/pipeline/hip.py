@@ -71,9 +71,9 @@ def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None 
     (z - H h)ᵀ Σ⁻¹ (z - H h) over h = (h_r, h_l).
     k defaults to `MRI_HIP_COV_SCALE`; ``model_sd`` σ adds σ² I to k C₆ (the model-error term calibrated on
     the realistic phantoms, `MRI_HIP_MODEL_SD`).  ``femur``: {side: `Gaussian`} the hip centre as the femur
-    registered on its own bony markers carries it (`femur_hip_centre`, lab frame, covariance as stated), a
-    further MRI observation z_fem,s = h_s + e_fem,s independent of the pelvis registration; the MRI source is
-    then the GLS fusion of the pelvis pair and these.
+    registered on its own bony markers carries it (`femur_hip_centre`, lab frame, the registration's covariance,
+    scaled and inflated as the pelvis pair's), a further MRI observation z_fem,s = h_s + e_fem,s independent of
+    the pelvis registration; the MRI source is then the GLS fusion of the pelvis pair and these.
 
     Parameters
     ----------
@@ -93,10 +93,12 @@ def fuse_hips(reg, hips_scanner: dict, motion: dict, *, mri_scale: float | None 
     ys = dict(zip(sides, Y))
     # + (0.1 mm)² per point (the femoral head centres' detection error on the phantoms): two points alone do not
     # see a rotation about the line through them, so the registration part is singular along that direction
-    C = mri_scale * C + (1e-8 + float(model_sd) ** 2) * np.eye(3 * n)
+    floor = 1e-8 + float(model_sd) ** 2
+    C = mri_scale * C + floor * np.eye(3 * n)
     H = np.eye(3 * n)
     z = np.concatenate([ys[s] for s in sides])
-    extra = [(femur[s].mean, femur[s].cov, H[3 * i:3 * i + 3]) for i, s in enumerate(sides) if s in (femur or {})]
+    extra = [(femur[s].mean, mri_scale * femur[s].cov + floor * np.eye(3), H[3 * i:3 * i + 3])
+             for i, s in enumerate(sides) if s in (femur or {})]
     if extra:
         both = fuse_linear([(z, C, H)] + extra)
         z, C = both.mean, both.cov
@@ -200,16 +202,16 @@ def estimate_hips(ctx: JointContext, reg_pelvis, pelvis_axes, est: JointEstimate
                     f"sd {HARRINGTON_SD * 1e3:.1f} mm per axis after Mantovani et al. 2016, plus the soft tissue's)")
                 used = "Harrington regression"
             est.notes.append(f"hip {s.upper()}: no functional hip centre ({exc}); {used} used")
-    model_sd = MRI_HIP_MODEL_SD_MEASURED if ctx.tissue_measured else MRI_HIP_MODEL_SD
     femur = {}
     for s in ctx.inputs.sides:
         g = femur_hip_centre(ctx, s, est)
         if g is not None:
-            femur[s] = g.scaled(est.mri_hip_scale).inflated((1e-8 + model_sd ** 2) * np.eye(3))
+            femur[s] = g
             est.sources[f"hip_centre_{s}_mri"] = ("MRI hip centre carried by the pelvis registration and by the femur's "
                                                   "own bony markers, fused")
     # both hips at once: their MRI estimates share the pelvis registration error
     mri, fused, est.hip_joint = fuse_hips(reg_pelvis, hips_scanner, hip_motion, mri_scale=est.mri_hip_scale,
-                                          model_sd=model_sd, femur=femur)
+                                          model_sd=MRI_HIP_MODEL_SD_MEASURED if ctx.tissue_measured
+                                          else MRI_HIP_MODEL_SD, femur=femur)
     for s in ctx.inputs.sides:
         est.centres.setdefault(s, {})["hip"] = CentreEstimates(mri[s], hip_motion[s], fused[s])
