@@ -210,9 +210,11 @@ def _flags(*bones) -> tuple:
 #: metatarsal head) and the axis sd in degrees.  It is the distance between a joint detected here
 #: and the one an expert built by hand on the same bones, which the fit covariance does not see
 #: (conventions of which surface defines the joint, non-circular articular arcs).  Chosen on
-#: one real set, checked on the other (`personalize.evaluation.reference_models.calibrate_model_error`,
-#: ``benchmarks/landmarks.py --calibration``): one centre fraction and one axis sd pooled over
-#: the hip, knee, ankle and subtalar joints, not a constant per joint tuned to one subject.
+#: each real set, checked on the other (`personalize.evaluation.reference_models.calibrate_model_error`,
+#: ``benchmarks/landmarks.py --sets-only``): one centre fraction and one axis sd pooled over the
+#: hip, knee, ankle and subtalar joints, not a constant per joint tuned to one subject.  Neither
+#: set's own calibration covers the other (ICL-MRI: 0.018 R, 0.57 deg; LHDL-CT: 0.007 R, 1.0 deg),
+#: so the larger of the two, rounded up, is in force.
 MODEL_ERROR = {k: {"centre": 0.020, "axis_deg": 1.2} for k in ("hip", "knee", "ankle", "subtalar")}
 MODEL_ERROR["mtp"] = {"centre": 0.1, "axis_deg": 3.0}       # no expert reference: a wide term
 #: articular radius used when the fit gives none (m)

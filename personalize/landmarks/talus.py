@@ -444,4 +444,12 @@ def _facet_sphere(surface, zone, up, concave: bool):
         score = (float(A[inl].sum()) if f.rms < 0.0012 else 0.0, -f.rms)
         if best is None or score > best[0]:
             best = (score, f)
-    return None if best is None else best[1]
+    if best is None:
+        return None
+    # refitted once on the chosen sphere's own inliers: the refinement band's selection is not the scored one
+    f = best[1]
+    inl = zone & (np.abs(np.linalg.norm(V - f.centre, axis=1) - f.radius) < FACET_INLIER)
+    if inl.sum() >= 20:
+        g = _normal_line_sphere(V[inl], Nrm[inl], A[inl])
+        f = g if 0.008 < g.radius < FACET_MAX_RADIUS else f
+    return f
