@@ -21,7 +21,7 @@ from .foot import detect_calcn, detect_toes
 from .patella import detect_patella
 from .pelvis import detect_pelvis
 from .talus import detect_talus
-from .tibia import detect_fibula, detect_tibia, tibia_surface
+from .tibia import detect_fibula, detect_tibia, malleolar_markers, tibia_surface
 
 __all__ = ["Axis", "BoneLandmarks", "Landmark", "LandmarkSet", "Surface", "as_surface", "detect_landmarks",
            "name_problems",
@@ -206,6 +206,10 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
             run(aname, lambda s=s, aname=aname, tib_s=tib_s, up=up, right=right: detect_talus(
                 surf[aname], aname, tibia=tib_s, calcaneus=surf.get(f"calcn_{s}"), right_hint=right, up_hint=up))
         tal = ls.bones.get(aname)
+        fib_s = surf.get(fname, fib_comp)
+        if tal is not None and "ankle_axis" in tal.axes and tib is not None and fname in ls.bones \
+                and fib_s is not None:
+            malleolar_markers(tib_s, fib_s, tib, ls.bones[fname], tal.axes["ankle_axis"].direction)
         if tal is not None and "anatomical" in tal.frames:
             R = tal.frames["anatomical"]["rotation"]
             up = R[:, 1] if up is None else up

@@ -226,7 +226,8 @@ def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None
             res.landmarks[f"{P}TTB"] = Landmark(V[k].copy(), isotropic_cov(0.002))
     if has_dist:
         # medial malleolus: its distal tip (ISB's MM, for the frames and axes) and its most medial point, where a
-        # medial malleolus marker is palpated (the IOR / Plug-in-Gait site, STAPLE's RMMA)
+        # medial malleolus marker is palpated (the IOR / Plug-in-Gait site, STAPLE's RMMA); re-found along the
+        # talocrural axis once the talus is known (`malleolar_markers`)
         med_blk = (hp < bot + 0.05) & (((V - sp) @ med) > 0)
         k = extreme_vertex(tib, -sd, med_blk, smooth=0.001)
         res.landmarks["medial_malleolus_tip"] = Landmark(V[k].copy(), isotropic_cov(0.002))
@@ -348,6 +349,36 @@ def _plafond(tib: Surface, res: BoneLandmarks, hp, bot, sd, right, ant):
     res.fits["plafond"] = {"type": "cylinder", "point": p.tolist(), "axis": u.tolist(),
                            "radius": float(fit.radius), "rms": float(fit.rms), "n_points": int(sel.sum()),
                            "converged": bool(fit.converged)}
+
+
+def malleolar_markers(tibia_surface: Surface, fibula_surface: Surface, tibia: BoneLandmarks, fibula: BoneLandmarks,
+                      ankle_axis: np.ndarray) -> None:
+    """The malleolar marker sites (``RMMA``, ``RANK``) re-found along the talocrural axis (in place).
+
+    Plug-in-Gait and IOR palpate the malleoli along the ankle's axis.  Alone,
+    the tibia and fibula have only the knee's medial-lateral direction (MMA)
+    and the line through the malleolar tips (ANK), 17-24 deg from the talar
+    dome's axis on ICL-MRI and LHDL-CT; on the flat faces of the malleoli that
+    moves the extreme points 3-9 mm.  With the talus detected, both markers are
+    the extreme points of the distal 5 cm (tibia) and 4 cm (fibula) along its
+    ankle axis (``ankle_axis``: unit, any sign).
+    """
+    P = "R" if tibia.side == "r" else "L"
+    if "shaft_axis" not in tibia.axes or f"{P}MMA" not in tibia.landmarks or f"{P}ANK" not in fibula.landmarks:
+        return
+    prox = tibia.axes["shaft_axis"].direction
+    ctr = tibia.axes["shaft_axis"].point
+    med = unit(np.asarray(ankle_axis, float))
+    if (fibula.landmarks[f"{P}ANK"].position - ctr) @ med > 0:
+        med = -med
+    for surf, res, key, band, d in ((tibia_surface, tibia, f"{P}MMA", 0.05, med),
+                                    (fibula_surface, fibula, f"{P}ANK", 0.04, -med)):
+        V = surf.vertices
+        hp = V @ prox
+        blk = (hp < hp.min() + band) & ((V - ctr) @ d > 0)
+        if blk.sum() >= 3:
+            k = extreme_vertex(surf, d, blk, smooth=0.001)
+            res.landmarks[key] = Landmark(V[k].copy(), isotropic_cov(0.002))
 
 
 def detect_fibula(surface: Surface, name: str = "fibula_r", tibia: BoneLandmarks | None = None) -> BoneLandmarks:
