@@ -139,11 +139,17 @@ def test_scale_bad_inputs_one_line_exit_2_no_output(shared_data, opensim, tmp_pa
     lacking = tmp_path / "static_no_head.trc"
     write_trc(lacking, trial.subset([n for n in trial.names if n != "Top.Head"]), units="mm")
     base = ["--model", str(f["model"]), "--setup", str(f["setup"]), "--marker-set", str(f["marker_set"])]
+    text = f["setup"].read_text(encoding="utf-8")
+    assert "V.Sacral Top.Head" in text
+    odd_setup = tmp_path / "setup_top_hat.xml"          # a pair naming a marker neither model nor marker set has
+    odd_setup.write_text(text.replace("V.Sacral Top.Head", "V.Sacral Top.Hat"), encoding="utf-8")
     cases = [
         ([str(lacking), *base], ["static_no_head.trc", "Top.Head", "torso"]),
         ([str(tmp_path / "absent.c3d"), *base], ["absent.c3d", "not found"]),
         ([str(f["static"]), "--model", str(tmp_path / "none.osim"), "--setup", str(f["setup"])], ["none.osim"]),
         ([str(f["static"]), *base[:4], "--marker-set", "pig"], ["pig", "MarkerSet"]),
+        ([str(f["static"]), "--model", str(f["model"]), "--setup", str(odd_setup), "--marker-set", str(f["marker_set"])],
+         ["gait2392_Scale_MarkerSet.xml", "Top.Hat", "not in the model's marker set"]),
     ]
     for k, (args, words) in enumerate(cases):
         out = tmp_path / f"out{k}"
