@@ -25,7 +25,7 @@ from lowerlimb.errors import FitError, InputError, Interrupted
 
 COMMANDS = (
     "phantom", "surfaces", "bones", "ik", "markers", "correlate",
-    "run", "validate", "batch", "demo", "dynamics",
+    "run", "validate", "batch", "demo", "dynamics", "scale",
 )
 
 app = typer.Typer(

@@ -9,7 +9,7 @@ from typing import Mapping
 from kinematics.io.opensim_io import read_xml
 from lowerlimb.errors import InputError
 
-__all__ = ["CoordinateTask", "IKSetup", "read_ik_setup", "write_ik_setup"]
+__all__ = ["CoordinateTask", "IKSetup", "read_ik_setup", "read_ik_tasks", "write_ik_setup"]
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,17 @@ def _bool(text: str | None) -> bool:
     return (text or "").strip().lower() in ("true", "1", "yes")
 
 
+def setup_number(text: str | None, default: float, path, what: str) -> float:
+    """The number in an element's `text` (`default` when empty); `InputError` naming `path` and `what` otherwise."""
+    text = (text or "").strip()
+    if not text:
+        return float(default)
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(path, f"{what}: {text!r} is not a number") from None
+
+
 def read_ik_setup(path: str | os.PathLike) -> IKSetup:
     """Parse an OpenSim ``InverseKinematicsTool`` setup file (defusedxml).
 
@@ -52,31 +63,51 @@ def read_ik_setup(path: str | os.PathLike) -> IKSetup:
     tool = root if root.tag == "InverseKinematicsTool" else root.find("InverseKinematicsTool")
     if tool is None:
         raise InputError(path, "not an OpenSim IK setup: no <InverseKinematicsTool> element")
+    weights, disabled, ctasks = read_ik_tasks(tool, path)
+    tr = (tool.findtext("time_range") or "").split()
+    time_range = (float(tr[0]), float(tr[1])) if len(tr) == 2 else None
+    acc = float((tool.findtext("accuracy") or "1e-5").strip())
+    return IKSetup(weights, ctasks, time_range, acc, (tool.findtext("model_file") or "").strip() or None,
+                   (tool.findtext("marker_file") or "").strip() or None, disabled, os.fspath(path))
+
+
+def read_ik_tasks(element, path) -> tuple[dict, tuple[str, ...], tuple[CoordinateTask, ...]]:
+    """The IK tasks under an XML `element` (an ``InverseKinematicsTool``, a ``MarkerPlacer``'s ``IKTaskSet``).
+
+    Returns
+    -------
+    marker_weights : dict marker -> weight of the applied ``IKMarkerTask`` with weight > 0
+    disabled : tuple of str, marker tasks not applied (or weight 0)
+    coordinate_tasks : tuple of CoordinateTask of the applied ``IKCoordinateTask`` (``default_value``: value None,
+        the model default; ``manual_value``: ``value``, radians for rotations as in OpenSim)
+
+    Raises
+    ------
+    InputError
+        A coordinate task ``from_file`` (not supported), naming `path`.
+    """
     weights, disabled, ctasks = {}, [], []
-    for t in tool.iter("IKMarkerTask"):
+    for t in element.iter("IKMarkerTask"):
         name = t.get("name")
-        w = float((t.findtext("weight") or "1").strip())
+        w = setup_number(t.findtext("weight"), 1.0, path, f"IKMarkerTask {t.get('name')!r} weight")
         if _bool(t.findtext("apply") or "true") and w > 0:
             weights[name] = w
         else:
             disabled.append(name)
-    for t in tool.iter("IKCoordinateTask"):
+    for t in element.iter("IKCoordinateTask"):
         if not _bool(t.findtext("apply") or "true"):
             continue
-        w = float((t.findtext("weight") or "1").strip())
+        w = setup_number(t.findtext("weight"), 1.0, path, f"IKCoordinateTask {t.get('name')!r} weight")
         vt = (t.findtext("value_type") or "default_value").strip()
         if vt == "default_value":
             ctasks.append(CoordinateTask(t.get("name"), w, None))
         elif vt == "manual_value":
-            ctasks.append(CoordinateTask(t.get("name"), w, float((t.findtext("value") or "0").strip())))
+            ctasks.append(CoordinateTask(t.get("name"), w, setup_number(t.findtext("value"), 0.0, path,
+                                                                f"IKCoordinateTask {t.get('name')!r} value")))
         else:
             raise InputError(path, f"IKCoordinateTask {t.get('name')!r}: value_type {vt!r} is not supported "
                                    "(use default_value or manual_value)")
-    tr = (tool.findtext("time_range") or "").split()
-    time_range = (float(tr[0]), float(tr[1])) if len(tr) == 2 else None
-    acc = float((tool.findtext("accuracy") or "1e-5").strip())
-    return IKSetup(weights, tuple(ctasks), time_range, acc, (tool.findtext("model_file") or "").strip() or None,
-                   (tool.findtext("marker_file") or "").strip() or None, tuple(disabled), os.fspath(path))
+    return weights, tuple(disabled), tuple(ctasks)
 
 
 def write_ik_setup(path: str | os.PathLike, *, model_file: str, marker_file: str, output_motion_file: str,
