@@ -157,75 +157,95 @@ def detect_landmarks(bones: Mapping[str, object], progress: Callable[[str], None
             progress(name)
         return res
 
-    for s in ("r", "l"):
-        if f"femur_{s}" in surf:
-            run(f"femur_{s}", lambda s=s: detect_femur(surf[f"femur_{s}"], f"femur_{s}"))
-    if "pelvis" in surf:
-        ant = None
+    def thigh_and_pelvis():
         for s in ("r", "l"):
-            f = ls.bones.get(f"femur_{s}")
-            if f is not None and "anatomical" in f.frames and FLAG_LOW_CONFIDENCE not in f.flags:
-                ant = f.frames["anatomical"]["rotation"][:, 0]
-                break
-        run("pelvis", lambda: detect_pelvis(surf["pelvis"], "pelvis", anterior_hint=ant))
-    for s in ("r", "l"):
-        tname, fname = f"tibia_{s}", f"fibula_{s}"
-        fib_comp = None
-        if tname in surf:
-            holder = {}
+            if f"femur_{s}" in surf:
+                run(f"femur_{s}", lambda s=s: detect_femur(surf[f"femur_{s}"], f"femur_{s}"))
+        if "pelvis" in surf:
+            ant = None
+            for s in ("r", "l"):
+                f = ls.bones.get(f"femur_{s}")
+                if f is not None and "anatomical" in f.frames and FLAG_LOW_CONFIDENCE not in f.flags:
+                    ant = f.frames["anatomical"]["rotation"][:, 0]
+                    break
+            run("pelvis", lambda: detect_pelvis(surf["pelvis"], "pelvis", anterior_hint=ant))
+        for s in ("r", "l"):
+            pname = f"patella_{s}"
+            if pname in surf:
+                fem = ls.bones.get(f"femur_{s}")
+                prox = fem.frames["anatomical"]["rotation"][:, 1] if fem is not None and "anatomical" in fem.frames \
+                    else None
+                run(pname, lambda s=s, pname=pname, prox=prox: detect_patella(
+                    surf[pname], pname, femur=surf.get(f"femur_{s}"), proximal_hint=prox))
 
-            def _tib(s=s, tname=tname, fname=fname, holder=holder):
-                r, fc = detect_tibia(surf[tname], tname, fibula=surf.get(fname), femur=surf.get(f"femur_{s}"),
-                                     talus=surf.get(f"talus_{s}"))
-                holder["fc"] = fc
-                return r
-            run(tname, _tib)
-            fib_comp = holder.get("fc")
-        tib = ls.bones.get(tname)
-        if fname in surf:
-            run(fname, lambda s=s, fname=fname, tib=tib: detect_fibula(surf[fname], fname, tib))
-        elif fib_comp is not None and tib is not None:
-            res = detect_fibula(fib_comp, fname, tib)
-            res.notes.append(f"{fname}: taken from the second component of {tname}")
-            ls.bones[fname] = res
-            if fname in ls.missing:
-                ls.missing.remove(fname)
-        pname = f"patella_{s}"
-        if pname in surf:
-            fem = ls.bones.get(f"femur_{s}")
-            prox = fem.frames["anatomical"]["rotation"][:, 1] if fem is not None and "anatomical" in fem.frames else None
-            run(pname, lambda s=s, pname=pname, prox=prox: detect_patella(
-                surf[pname], pname, femur=surf.get(f"femur_{s}"), proximal_hint=prox))
-        up = right = None
-        if tib is not None and "anatomical" in tib.frames:
-            R = tib.frames["anatomical"]["rotation"]
-            up, right = R[:, 1], R[:, 2]
-        aname = f"talus_{s}"
-        if aname in surf:
-            tib_s = tibia_surface(surf[tname]) if tname in surf else None
-            run(aname, lambda s=s, aname=aname, tib_s=tib_s, up=up, right=right: detect_talus(
-                surf[aname], aname, tibia=tib_s, calcaneus=surf.get(f"calcn_{s}"), right_hint=right, up_hint=up))
-        tal = ls.bones.get(aname)
-        fib_s = surf.get(fname, fib_comp)
-        if tal is not None and "ankle_axis" in tal.axes and tib is not None and fname in ls.bones \
-                and fib_s is not None:
-            malleolar_markers(tib_s, fib_s, tib, ls.bones[fname], tal.axes["ankle_axis"].direction)
-        if tal is not None and "anatomical" in tal.frames:
-            R = tal.frames["anatomical"]["rotation"]
-            up = R[:, 1] if up is None else up
-            right = R[:, 2] if right is None else right
-        cname = f"calcn_{s}"
-        if cname in surf:
-            run(cname, lambda s=s, cname=cname, up=up, right=right: detect_calcn(
-                surf[cname], cname, up_hint=up, right_hint=right, talus=surf.get(aname)))
-        oname = f"toes_{s}"
-        if oname in surf:
-            run(oname, lambda s=s, oname=oname: detect_toes(surf[oname], oname, ls.bones.get(f"calcn_{s}")))
+    def shank_and_foot():
+        for s in ("r", "l"):
+            _shank_and_foot(s, surf, ls, run)
+
+    # the thigh-pelvis chain and the shank-foot chain use each other's surfaces, never their results: two
+    # threads (numpy releases the GIL), each chain in its own fixed order, so the results are the sequential ones
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for job in [pool.submit(thigh_and_pelvis), pool.submit(shank_and_foot)]:
+            job.result()
+    order = [f"femur_{s}" for s in "rl"] + ["pelvis"] + [f"{b}_{s}" for s in "rl" for b in
+                                                          ("tibia", "fibula", "patella", "talus", "calcn", "toes")]
+    ls.bones = {b: ls.bones[b] for b in sorted(ls.bones, key=lambda b: order.index(b) if b in order else len(order))}
     for s in ("r", "l"):
         _tibia_isb(ls, s)
     if not trust_names:
         _refuse_names(ls, bones)
     return ls
+
+
+
+def _shank_and_foot(s: str, surf: dict, ls: LandmarkSet, run) -> None:
+    """Tibia, fibula, talus, calcaneus and toes of side `s`, in that order (each uses the ones before)."""
+    tname, fname = f"tibia_{s}", f"fibula_{s}"
+    fib_comp = None
+    if tname in surf:
+        holder = {}
+
+        def _tib(s=s, tname=tname, fname=fname, holder=holder):
+            r, fc = detect_tibia(surf[tname], tname, fibula=surf.get(fname), femur=surf.get(f"femur_{s}"),
+                                 talus=surf.get(f"talus_{s}"))
+            holder["fc"] = fc
+            return r
+        run(tname, _tib)
+        fib_comp = holder.get("fc")
+    tib = ls.bones.get(tname)
+    if fname in surf:
+        run(fname, lambda s=s, fname=fname, tib=tib: detect_fibula(surf[fname], fname, tib))
+    elif fib_comp is not None and tib is not None:
+        res = detect_fibula(fib_comp, fname, tib)
+        res.notes.append(f"{fname}: taken from the second component of {tname}")
+        ls.bones[fname] = res
+        if fname in ls.missing:
+            ls.missing.remove(fname)
+    up = right = None
+    if tib is not None and "anatomical" in tib.frames:
+        R = tib.frames["anatomical"]["rotation"]
+        up, right = R[:, 1], R[:, 2]
+    aname = f"talus_{s}"
+    if aname in surf:
+        tib_s = tibia_surface(surf[tname]) if tname in surf else None
+        run(aname, lambda s=s, aname=aname, tib_s=tib_s, up=up, right=right: detect_talus(
+            surf[aname], aname, tibia=tib_s, calcaneus=surf.get(f"calcn_{s}"), right_hint=right, up_hint=up))
+    tal = ls.bones.get(aname)
+    fib_s = surf.get(fname, fib_comp)
+    if tal is not None and "ankle_axis" in tal.axes and tib is not None and fname in ls.bones \
+            and fib_s is not None:
+        malleolar_markers(tib_s, fib_s, tib, ls.bones[fname], tal.axes["ankle_axis"].direction)
+    if tal is not None and "anatomical" in tal.frames:
+        R = tal.frames["anatomical"]["rotation"]
+        up = R[:, 1] if up is None else up
+        right = R[:, 2] if right is None else right
+    cname = f"calcn_{s}"
+    if cname in surf:
+        run(cname, lambda s=s, cname=cname, up=up, right=right: detect_calcn(
+            surf[cname], cname, up_hint=up, right_hint=right, talus=surf.get(aname)))
+    oname = f"toes_{s}"
+    if oname in surf:
+        run(oname, lambda s=s, oname=oname: detect_toes(surf[oname], oname, ls.bones.get(f"calcn_{s}")))
 
 
 def _tibia_isb(ls: LandmarkSet, s: str) -> None:
