@@ -30,6 +30,8 @@ def register(app: typer.Typer) -> None:
         marker_set: str = typer.Option(None, "--marker-set", help="The trials' marker set when the subject folder has "
                                        "no markers.json: a markers.json file or a preset (pig, ior, cast, opensim); "
                                        "default: the preset the static trial's labels fit."),
+        full_meshes: bool = typer.Option(False, "--full-meshes", help="Write the bone meshes at full resolution "
+                                         "(default: each decimated to at most 20,000 faces, its error in model.json)."),
     ) -> None:
         """Personalised model from MRI and motion capture: fused joints, model.osim, IK of every trial, report."""
         from rich.console import Console
@@ -40,7 +42,7 @@ def register(app: typer.Typer) -> None:
         console = Console(stderr=True, quiet=quiet)
         with StepProgress("run", expected_steps(subject_dir), console) as prog:
             summary = run_subject(subject_dir, out, report=report, progress=prog, overwrite=overwrite,
-                                  marker_set=marker_set)
+                                  marker_set=marker_set, full_meshes=full_meshes)
         if not quiet:
             _print_summary(summary, out, Console())
 
