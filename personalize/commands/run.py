@@ -5,8 +5,9 @@ SUBJECT_DIR holds ``labels.nii.gz`` (+ ``label_map.json``) or ``bones/``,
 the hip centres), ``subject.json`` and, for a marker set other than a preset the
 labels fit, ``markers.json`` (or ``--marker-set FILE|PRESET``); the folder `personalize phantom`
 writes is itself a valid SUBJECT_DIR.  Writes model.osim, model.json,
-meshes/, landmarks.json, joints.json, kinematics/<trial>.mot (+ marker
-errors), report.html and summary.json; when the subject is refused, only
+meshes/ (at most 20,000 faces per bone unless --full-meshes), landmarks.json, joints.json,
+kinematics/<trial>.mot (+ marker errors, TRC and IK setup; trials with force plates: ground reactions,
+ID and static-optimisation setups, reserve_actuators.xml), report.html and summary.json; when the subject is refused, only
 report.html stating the error (exit code 2 with a one-line message).  --out is
 checked before any work (`personalize.outputs`): an existing non-empty folder
 is refused unless --overwrite, which replaces it whole.  Progress: step N of
