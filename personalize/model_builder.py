@@ -86,7 +86,7 @@ from kinematics.multibody.model import Body, Coordinate, Marker, Model
 
 __all__ = ["SideParameters", "SubjectParameters", "PersonalModel", "build_personal_model", "default_knee_law",
            "MARKER_BODIES", "DE_LEVA", "GROUND_FROM_INTERNAL", "GRAVITY", "trial_in_ground", "save_model_json",
-           "save_model_osim", "write_meshes"]
+           "save_model_osim", "write_meshes", "MeshFile", "MODEL_MESH_MAX_FACES", "decimation_error", "model_credits"]
 
 _X, _Y, _Z = np.eye(3)
 
@@ -378,14 +378,76 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
 
 
 # --------------------------------------------------------------------------- export
-def write_meshes(pm: PersonalModel, meshes: dict, folder: Path) -> dict:
-    """Write bone meshes in their body frames as binary STL (metres) into `folder`.
+#: default face budget of each exported bone mesh (``personalize run --full-meshes`` keeps them whole): a 1 mm
+#: MRI femur has ~0.5 M faces; 20,000 keep its shape within a fraction of the voxel (`MeshFile` states the error)
+MODEL_MESH_MAX_FACES = 20_000
+#: surface samples of the decimation error (each way)
+_ERROR_SAMPLES = 20_000
 
-    meshes : dict bone name -> (trimesh.Trimesh in the internal frame of the static trial, body name)
 
-    Returns dict bone -> (body, relative file name).
+@dataclass(frozen=True)
+class MeshFile:
+    """One bone mesh written for the model (binary STL, metres, in its body's frame).
+
+    body : body it is attached to; file : path relative to the model file (``meshes/<bone>.stl``)
+    faces : faces written; source_faces : faces of the bone surface it was made from
+    hausdorff_mm : symmetric Hausdorff distance between the written and the source surface (mm; every source vertex
+        to the written surface and `_ERROR_SAMPLES` surface samples each way); 0 when written whole
+    mean_mm : mean absolute surface distance, both ways (mm); watertight : (source, written) watertightness
+    source : where the surface came from (the subject's label volume or mesh folder, and the bone)
+    """
+
+    body: str
+    file: str
+    faces: int
+    source_faces: int
+    hausdorff_mm: float = 0.0
+    mean_mm: float = 0.0
+    watertight: tuple[bool, bool] = (True, True)
+    source: str = ""
+
+    @property
+    def decimated(self) -> bool:
+        return self.faces < self.source_faces
+
+    def to_json(self) -> dict:
+        return {"body": self.body, "file": self.file, "units": "m", "frame": f"body {self.body} (ISB axes)",
+                "faces": self.faces, "source_faces": self.source_faces, "decimated": self.decimated,
+                "decimation": "quadric edge collapse (pymeshlab), topology kept" if self.decimated else "none",
+                "hausdorff_mm": self.hausdorff_mm, "mean_distance_mm": self.mean_mm,
+                "watertight": {"source": self.watertight[0], "written": self.watertight[1]}, "source": self.source}
+
+
+def decimation_error(source, written) -> tuple[float, float]:
+    """(Hausdorff, mean) distance between two surfaces in mm (meshes in metres).
+
+    The Hausdorff distance is the largest of every `source` vertex's distance to `written` and the sampled
+    distances both ways (`personalize.surfaces.surface_distance`); the mean is that function's two-way mean.
+    """
+    import igl
+
+    from .surfaces import surface_distance
+
+    d = surface_distance(written, source, n=_ERROR_SAMPLES, seed=0)
+    dv = np.sqrt(igl.point_mesh_squared_distance(np.asarray(source.vertices, float), np.asarray(written.vertices, float),
+                                                 np.asarray(written.faces, np.int64))[0])
+    return 1e3 * max(d["max"], float(dv.max())), 1e3 * d["mean"]
+
+
+def write_meshes(pm: PersonalModel, meshes: dict, folder: Path, *, max_faces: int | None = MODEL_MESH_MAX_FACES,
+                 source: str = "") -> dict:
+    """Write bone meshes in their body frames as binary STL (metres) into `folder`, decimated to `max_faces`.
+
+    meshes : dict bone name -> (trimesh.Trimesh in the internal frame of the static trial, m; body name)
+    max_faces : face budget per bone (quadric edge collapse, `personalize.surfaces.extraction.decimate` without
+        planar quadrics, topology kept); None: written whole
+    source : where the surfaces came from (stated in model.json and the .osim's credits)
+
+    Returns dict bone -> `MeshFile` (the decimation's measured error included).
     """
     from lowerlimb.atomic import atomic_path, inside
+
+    from .surfaces.extraction import decimate
 
     out = {}
     for bone, (mesh, body) in sorted(meshes.items()):
@@ -397,19 +459,54 @@ def write_meshes(pm: PersonalModel, meshes: dict, folder: Path) -> dict:
         T[:3, :3] = R.T
         T[:3, 3] = -R.T @ o
         m.apply_transform(T)
+        n_src = len(m.faces)
+        h_mm = mean_mm = 0.0
+        tight = bool(m.is_watertight)
+        if max_faces is not None and n_src > max_faces:
+            full = m
+            m = decimate(full, int(max_faces), planar_quadric=False)     # curvature-led: 5x smaller error
+            h_mm, mean_mm = decimation_error(full, m)
         path = inside(folder, f"{bone}.stl")
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             data = m.export(file_type="stl")
-            # binary STL header (80 bytes) states units and frame
-            head = f"units m; frame body {body} of the personalised model".encode()[:80].ljust(80, b" ")
+            # the binary STL header (80 bytes) states units, frame and decimation
+            what = f"{len(m.faces)}/{n_src} faces, Hausdorff {h_mm:.2f} mm" if len(m.faces) < n_src else "full"
+            head = f"m; body {body} frame; {bone} {what}; personalize".encode()[:80].ljust(80, b" ")
             tmp.write_bytes(head + data[80:])
-        out[bone] = (body, f"{folder.name}/{bone}.stl")
+        out[bone] = MeshFile(body, f"{folder.name}/{bone}.stl", len(m.faces), n_src, h_mm, mean_mm,
+                             (tight, bool(m.is_watertight)), f"{source}: {bone}" if source else bone)
     return out
 
 
+def model_credits(pm: PersonalModel, mesh_files: dict | None = None) -> str:
+    """The .osim's ``credits``: what made the model, from what, in which units and frames."""
+    from . import __version__
+
+    files = list((mesh_files or {}).values())
+    text = (f"Subject-specific lower-limb model '{pm.model.name}' built by personalize {__version__} from the "
+            "subject's MRI bone surfaces and motion capture (joint centres and axes fused from both; de Leva 1996 "
+            "mass properties). Units: m, kg, N, rad. Ground: X the static pose's facing, Y up, Z right; ISB body "
+            "frames (X anterior, Y superior, Z right).")
+    if files:
+        dec = [f for f in files if f.decimated]
+        src = sorted({f.source.rsplit(": ", 1)[0] for f in files if ": " in f.source})
+        text += (f" Bone meshes: binary STL in metres, each in its body's frame, from {', '.join(src) or 'the bone surfaces'}; ")
+        if dec:
+            text += (f"{len(dec)} of {len(files)} decimated by quadric edge collapse to at most "
+                     f"{max(f.faces for f in dec)} faces (largest Hausdorff distance to the source surface "
+                     f"{max(f.hausdorff_mm for f in dec):.2f} mm; per bone in model.json).")
+        else:
+            text += "full resolution."
+    return text
+
+
 def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = None) -> Path:
-    """Export to OpenSim (``kinematics.io.opensim_io.to_opensim``) with the bone meshes attached to their bodies."""
+    """Export to OpenSim (``kinematics.io.opensim_io.to_opensim``) with the bone meshes attached to their bodies.
+
+    mesh_files : bone -> `MeshFile` (`write_meshes`); the model states its units (``length_units`` meters,
+    ``force_units`` N) and, in ``credits``, its source, frames and the meshes' decimation (`model_credits`).
+    """
     import os
 
     from lowerlimb.atomic import atomic_path
@@ -418,11 +515,14 @@ def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = Non
     om = to_opensim(pm.model)
     import opensim as osim
 
-    for bone, (body, rel) in (mesh_files or {}).items():
-        b = om.updBodySet().get(body)
-        g = osim.Mesh(rel)
+    for bone, mf in (mesh_files or {}).items():
+        b = om.updBodySet().get(mf.body)
+        g = osim.Mesh(mf.file)
         g.setName(f"{bone}_geometry")
         b.attachGeometry(g)
+    om.set_length_units("meters")
+    om.set_force_units("N")
+    om.set_credits(model_credits(pm, mesh_files))
     om.finalizeConnections()
     with atomic_path(path) as tmp:
         if not om.printToXML(os.fspath(tmp)):
@@ -439,7 +539,7 @@ def model_json(pm: PersonalModel, mesh_files: dict | None = None) -> dict:
         o, R = pm.body_frames[b.name]
         bodies.append({"name": b.name, "mass": b.mass, "com": b.com.tolist(), "inertia": b.inertia.tolist(),
                        "static_origin": (G @ o).tolist(), "static_rotation": (G @ R).tolist(),
-                       "meshes": [f for bone, (body, f) in sorted((mesh_files or {}).items()) if body == b.name]})
+                       "meshes": [mf.file for bone, mf in sorted((mesh_files or {}).items()) if mf.body == b.name]})
     joints = []
     for j in m.joints:
         joints.append({"name": j.name, "type": j.kind_name if hasattr(j, "kind_name") else j.kind,
@@ -463,6 +563,7 @@ def model_json(pm: PersonalModel, mesh_files: dict | None = None) -> dict:
         "coordinates": [{"name": c.name, "kind": c.kind, "default": c.default, "range": list(c.range), "locked": c.locked}
                         for c in m.coordinates],
         "markers": [{"name": mk.name, "body": mk.body, "offset": mk.offset.tolist()} for mk in m.markers],
+        "mesh_files": {bone: mf.to_json() for bone, mf in sorted((mesh_files or {}).items())},
         "knee_laws": {s: law.to_json() for s, law in pm.knee_laws.items()},
         "uncertainty": _uncertainty_json(pm.parameters),
         "sources": pm.parameters.sources,

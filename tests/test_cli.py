@@ -59,3 +59,19 @@ def test_bare_command_prints_help_and_version():
     assert proc.returncode == 0 and proc.stdout.strip() == f"personalize {personalize.__version__}"
     assert personalize.__version__.count(".") >= 1
     assert cli.main(["--version"]) == 0
+
+
+def test_run_full_meshes_option_reaches_the_pipeline(monkeypatch, tmp_path):
+    """``personalize run --full-meshes`` writes the meshes whole; by default they are decimated."""
+    import personalize.pipeline
+
+    seen = []
+
+    def fake_run_subject(subject_dir, out, **kw):
+        seen.append(kw["full_meshes"])
+        return {"subject": "s", "ik": {}}
+
+    monkeypatch.setattr(personalize.pipeline, "run_subject", fake_run_subject)
+    assert cli.main(["run", str(tmp_path), "--out", str(tmp_path / "o"), "--full-meshes", "-q"]) == 0
+    assert cli.main(["run", str(tmp_path), "--out", str(tmp_path / "o"), "-q"]) == 0
+    assert seen == [True, False]

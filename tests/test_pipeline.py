@@ -419,3 +419,75 @@ def test_calibration_constants_are_the_recorded_ones():
         else:
             np.testing.assert_allclose(v, r, rtol=1e-12, err_msg=k)
         assert rec[k]["benchmark"], k
+
+
+def test_demo_model_and_meshes_are_light_and_stated(demo, opensim):
+    """The demo's model.osim with its meshes under 20 MB; every mesh at most 20,000 faces (the STL's own count),
+    watertight where its surface was, its decimation error stated (model.json, STL header, the .osim's credits)."""
+    from personalize.model_builder import MODEL_MESH_MAX_FACES
+
+    out, _ = demo
+    m = out / "model"
+    size = (m / "model.osim").stat().st_size + sum(f.stat().st_size for f in (m / "meshes").iterdir())
+    assert size < 20e6
+    doc = json.loads((m / "model.json").read_text())["mesh_files"]
+    assert len(doc) >= 13 and sum(v["decimated"] for v in doc.values()) >= 5
+    for bone, v in doc.items():
+        data = (m / v["file"]).read_bytes()
+        n = int.from_bytes(data[80:84], "little")
+        assert n == v["faces"] <= MODEL_MESH_MAX_FACES and len(data) == 84 + 50 * n, bone
+        assert data[:80].decode().startswith(f"m; body {v['body']} frame;")
+        assert v["units"] == "m" and v["source"].endswith(f"labels.nii.gz: {bone}")
+        assert v["watertight"]["written"] or not v["watertight"]["source"], bone
+        if v["decimated"]:
+            assert v["source_faces"] > v["faces"] and 0 < v["mean_distance_mm"] < 0.1, (bone, v)
+            assert v["hausdorff_mm"] < 1.0, (bone, v)                     # 2 mm voxels
+    om = opensim.Model(str(m / "model.osim"))
+    assert "quadric edge collapse" in om.getCredits() and "metres" in om.getCredits()
+    assert om.getBodySet().get("pelvis").getPropertyByName("attached_geometry").size() == 1
+
+
+def test_setup_writers_on_the_demo_model(demo, opensim, tmp_path):
+    """Without force plates (the analytic phantom has none), the set-up writers on the demo's model and gait IK with
+    a synthetic ground reaction on calcn_r: OpenSim's ID and SO run as written; ID = personalize's ID, SO = ID."""
+    from kinematics.io.dynamics_setup import run_setup, write_id_setup, write_reserve_actuators, write_so_setup
+    from kinematics.io.external_loads import ExternalLoad, write_external_loads
+    from kinematics.io.storage import read_mot, read_sto
+    from opensim_checks import ID_ABS_TOL, ID_REL_TOL, check_so_reproduces_id, generalised_force
+    from personalize.joint_dynamics import trial_joint_dynamics
+
+    out, _ = demo
+    opensim.Logger.setLevelString("warn")
+    shutil.copy(out / "model" / "model.osim", tmp_path / "model.osim")
+    shutil.copy(out / "model" / "model.json", tmp_path / "model.json")
+    k = tmp_path / "kinematics"
+    k.mkdir()
+    shutil.copy(out / "model" / "kinematics" / "gait_01.mot", k / "gait_01.mot")
+    mot = read_mot(k / "gait_01.mot")
+    t = mot.time
+    x = lambda c: mot.values[:, mot.columns.index(c)]  # noqa: E731
+    w = 2 * np.pi * t
+    F = np.column_stack([30 * np.sin(w), 700 + 100 * np.sin(2 * w), 10 * np.cos(w)])        # N, ground
+    P = np.column_stack([x("pelvis_tx"), np.zeros_like(t), x("pelvis_tz")])                  # m, under the pelvis
+    T = np.column_stack([np.zeros_like(t), 2 * np.cos(w), np.zeros_like(t)])                 # N m
+    write_external_loads(k, "gait_01_grf", [ExternalLoad("R_ground_reaction", "calcn_r", t, F, P, T)],
+                         frame="model ground")
+    write_reserve_actuators(tmp_path / "reserve_actuators.xml", tmp_path / "model.osim")
+    window = (float(t[5]), float(t[-6]))
+    common = dict(model_file="../model.osim", coordinates_file="gait_01.mot", external_loads_file="gait_01_grf.xml",
+                  time_range=window, cutoff_hz=6.0)
+    write_id_setup(k / "id.xml", output_gen_force_file="id.sto", name="gait_01_id", **common)
+    write_so_setup(k / "so.xml", force_set_files=["../reserve_actuators.xml"], name="so", **common)
+    assert run_setup(k / "id.xml") == "InverseDynamicsTool"
+    os_id = read_sto(k / "id.sto")
+    mine = trial_joint_dynamics(tmp_path / "model.osim", k / "gait_01.mot",
+                                loads=(k / "gait_01_grf.mot", k / "gait_01_grf.xml"), cutoff=6.0,
+                                start=window[0], end=window[1]).result
+    assert mine.time.shape == os_id.time.shape
+    for c in mine.coordinates:
+        a = generalised_force(os_id, c)
+        assert np.abs(a - mine[c]).max() < ID_REL_TOL * np.abs(a).max() + ID_ABS_TOL, c
+    assert np.abs(generalised_force(os_id, "ankle_angle_r")).max() > 10.0        # the load reaches the foot
+    assert run_setup(k / "so.xml") == "AnalyzeTool"
+    so = read_sto(k / "so_StaticOptimization_force.sto")
+    check_so_reproduces_id(json.loads((tmp_path / "model.json").read_text()), os_id, so)

@@ -318,7 +318,8 @@ class TrialLoads:
     notes: tuple
 
 
-def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict | None = None) -> TrialLoads:
+def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict | None = None,
+                   rotation: np.ndarray | None = None) -> TrialLoads:
     """Force plates of a C3D trial as external loads on the model's feet.
 
     The plates are read at the point rate (box-averaged, as Nexus reports them; raw analog noise
@@ -329,7 +330,9 @@ def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict 
     file's markers (`kinematics.gait.lab_frame.detect_lab`; +Z, the C3D convention, when they do not
     tell it, with a note): a Y-up lab's plates are read and rotated as such.  Feet go to
     ``calcn_r`` / ``calcn_l`` (``bodies`` to change).  A file without plates
-    gives no loads and a note.
+    gives no loads and a note.  ``rotation`` (3, 3): x_ground = rotation @ x_lab, for a model whose ground is
+    not the lab's axes permuted to Y up (`lab_to_ground`, the default), e.g. a personalised model's ground,
+    which faces the static pose's direction (same origin as the lab).
     """
     from kinematics.io.c3d import read_c3d
     from kinematics.io.external_loads import loads_from_plates
@@ -354,7 +357,8 @@ def loads_from_c3d(path, model: Model, *, threshold: float = 20.0, bodies: dict 
     if not contacts:
         notes.append(f"no force plate is loaded above {threshold:g} N: no ground reactions, kinematics only")
         return TrialLoads((), (), (), tuple(notes))
-    loads, _ = loads_from_plates(plates, contacts, bodies, rotation=lab_to_ground(model, up), up=up)
+    R = lab_to_ground(model, up) if rotation is None else np.asarray(rotation, float)
+    loads, _ = loads_from_plates(plates, contacts, bodies, rotation=R, up=up)
     notes += [c.describe() for c in contacts]
     exclude = [(c.start_time, c.end_time, f"plate {c.plate + 1}: {', '.join(c.flags) or 'no foot'}")
                for c in contacts if not c.usable]

@@ -5,8 +5,9 @@ SUBJECT_DIR holds ``labels.nii.gz`` (+ ``label_map.json``) or ``bones/``,
 the hip centres), ``subject.json`` and, for a marker set other than a preset the
 labels fit, ``markers.json`` (or ``--marker-set FILE|PRESET``); the folder `personalize phantom`
 writes is itself a valid SUBJECT_DIR.  Writes model.osim, model.json,
-meshes/, landmarks.json, joints.json, kinematics/<trial>.mot (+ marker
-errors), report.html and summary.json; when the subject is refused, only
+meshes/ (at most 20,000 faces per bone unless --full-meshes), landmarks.json, joints.json,
+kinematics/<trial>.mot (+ marker errors, TRC and IK setup; trials with force plates: ground reactions,
+ID and static-optimisation setups, reserve_actuators.xml), report.html and summary.json; when the subject is refused, only
 report.html stating the error (exit code 2 with a one-line message).  --out is
 checked before any work (`personalize.outputs`): an existing non-empty folder
 is refused unless --overwrite, which replaces it whole.  Progress: step N of
@@ -30,6 +31,8 @@ def register(app: typer.Typer) -> None:
         marker_set: str = typer.Option(None, "--marker-set", help="The trials' marker set when the subject folder has "
                                        "no markers.json: a markers.json file or a preset (pig, ior, cast, opensim); "
                                        "default: the preset the static trial's labels fit."),
+        full_meshes: bool = typer.Option(False, "--full-meshes", help="Write the bone meshes at full resolution "
+                                         "(default: each decimated to at most 20,000 faces, its error in model.json)."),
     ) -> None:
         """Personalised model from MRI and motion capture: fused joints, model.osim, IK of every trial, report."""
         from rich.console import Console
@@ -40,7 +43,7 @@ def register(app: typer.Typer) -> None:
         console = Console(stderr=True, quiet=quiet)
         with StepProgress("run", expected_steps(subject_dir), console) as prog:
             summary = run_subject(subject_dir, out, report=report, progress=prog, overwrite=overwrite,
-                                  marker_set=marker_set)
+                                  marker_set=marker_set, full_meshes=full_meshes)
         if not quiet:
             _print_summary(summary, out, Console())
 

@@ -17,7 +17,8 @@ __all__ = ["run_subject", "read_subject_bones", "build_model"]
 
 
 def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[[str], None] | None = None,
-                report: bool = True, overwrite: bool = False, marker_set=None, model_check: bool = True) -> dict:
+                report: bool = True, overwrite: bool = False, marker_set=None, model_check: bool = True,
+                full_meshes: bool = False) -> dict:
     """Run the whole pipeline on one subject folder; outputs are staged into `out`.
 
     Parameters
@@ -31,6 +32,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
         (default: the preset the static trial's labels fit; `personalize.pipeline.markers`)
     model_check : refuse a model that fails `model_checks.check_model` (off only for calibration studies, which
         need the estimates of every subject whatever the publication gate decides)
+    full_meshes : write the bone meshes at the surfaces' full resolution (default: each decimated to at most
+        `personalize.model_builder.MODEL_MESH_MAX_FACES` faces, the error stated in model.json)
 
     Returns
     -------
@@ -49,7 +52,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     check_output_dir(out, inputs=[subject_dir], overwrite=overwrite)
     try:
         return _run_subject(subject_dir, out, progress=progress, report=report, marker_set=marker_set,
-                            model_check=model_check)
+                            model_check=model_check, full_meshes=full_meshes)
     except (InputError, FitError) as exc:
         if report:
             write_refusal_report(Path(out), subject_dir, exc)
@@ -70,16 +73,17 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
 
 
 def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker_set=None,
-                 model_check: bool = True) -> dict:
+                 model_check: bool = True, full_meshes: bool = False) -> dict:
     """`run_subject` without the refusal report."""
     from ..bone_set import write_bone_files
     from ..evaluation.truth import chain_angle_errors, compare_with_truth, truth_in_static_lab
-    from ..model_builder import save_model_json, save_model_osim, write_meshes
+    from ..model_builder import MODEL_MESH_MAX_FACES, save_model_json, save_model_osim, write_meshes
     from ..outputs import replaced_dir
     from ..parameter_fusion import fuse_segment_lengths
     from .marker_assignment import model_markers
     from .model import bone_meshes_lab, joints_on_bones, pelvis_bone_frame, segment_placements
     from .model_checks import bone_segment_lengths, check_model
+    from .dynamics_setups import write_dynamics_setups
     from .trials import chain_blend, solve_trials
 
     say = progress or (lambda m: None)
@@ -129,10 +133,12 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)
         say("writing meshes and model")
-        mesh_files = write_meshes(pm, meshes_lab, inside(stage, "meshes"))
+        mesh_files = write_meshes(pm, meshes_lab, inside(stage, "meshes"),
+                                  max_faces=None if full_meshes else MODEL_MESH_MAX_FACES, source=str(inputs.bones))
         save_model_json(pm, inside(stage, "model.json"), mesh_files)
         save_model_osim(pm, inside(stage, "model.osim"), mesh_files)
         ik, summary.ik = solve_trials(pm, inputs, stage, say, summary.notes)
+        summary.dynamics_setups = write_dynamics_setups(pm, inputs, stage, ik, say, summary.notes)
         summary.chain_blend, chains = chain_blend(inputs, stage, summary.notes)
         if truth is not None:
             summary.chain_blend.update(chain_angle_errors(inputs, chains))

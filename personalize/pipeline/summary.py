@@ -36,6 +36,7 @@ class SubjectSummary:
     measurements : Plug-in-Gait measurement -> {"value": m, "source": subject file or how the bones gave it}
     markers : `pipeline.marker_assignment.MarkerAssignment.to_json`: each static marker's body and why
     joints_on_bones : `pipeline.model.joints_on_bones`
+    dynamics_setups : `pipeline.dynamics_setups.write_dynamics_setups` (trials with force plates)
     """
 
     subject: str
@@ -56,6 +57,7 @@ class SubjectSummary:
     measurements: dict | None = None
     markers: dict | None = None
     joints_on_bones: dict | None = None
+    dynamics_setups: dict = field(default_factory=dict)
 
     @property
     def ik_rms_mm(self) -> float:
@@ -111,6 +113,7 @@ class SubjectSummary:
                                for k, r in est.registrations.items()}
         doc["ik"] = {k: v.summary() for k, v in self.ik.items()}
         doc["chain_blend"] = self.chain_blend
+        doc["dynamics_setups"] = self.dynamics_setups
         doc["ik_rms_mm"] = self.ik_rms_mm
         if self.truth is not None:
             doc.update(self.truth.to_json())

@@ -77,8 +77,12 @@ def taubin_smooth(mesh: trimesh.Trimesh, iterations: int = 5, lamb: float = 0.5,
 _PYMESHLAB_LOCK = threading.Lock()  # pymeshlab is not thread-safe
 
 
-def decimate(mesh: trimesh.Trimesh, target_faces: int) -> trimesh.Trimesh:
+def decimate(mesh: trimesh.Trimesh, target_faces: int, *, planar_quadric: bool = True) -> trimesh.Trimesh:
     """Quadric edge-collapse decimation (pymeshlab) to about `target_faces`, topology kept.
+
+    planar_quadric : pymeshlab's extra planar quadrics (they keep flat regions flat); off, the collapse follows
+        curvature only: a 1 mm MRI pelvis (349 k faces) at 20 k faces is within 0.43 mm of its source instead of
+        2.4 mm (Hausdorff; mean 0.037 instead of 0.17 mm)
 
     Call from the main thread only: pymeshlab used from other threads corrupts
     the heap (crash at interpreter exit), even when serialised.
@@ -88,7 +92,8 @@ def decimate(mesh: trimesh.Trimesh, target_faces: int) -> trimesh.Trimesh:
     with _PYMESHLAB_LOCK:
         ms = _to_pymeshlab(mesh)
         ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(target_faces), preservetopology=True,
-                                                    preservenormal=True, planarquadric=True, qualitythr=0.5)
+                                                    preservenormal=True, planarquadric=bool(planar_quadric),
+                                                    qualitythr=0.5)
         out = _from_pymeshlab(ms)
     if signed_volume(out.vertices, out.faces) < 0:
         out.invert()
