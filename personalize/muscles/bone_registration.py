@@ -1,0 +1,247 @@
+"""The generic bones registered to the subject's, per body: the map that carries muscle points across.
+
+For each body, the generic bone surface ``G`` (gait2392's meshes, its body frame) is registered to the subject's
+bone surface ``S`` (the personalised body frame), both in metres:
+
+1. start: the similarity ``x' = s R x + t`` that puts the body's generic joint centres on the subject's
+   (`GenericModel.joint_points`; two joints: ``s`` their distances' ratio, ``R`` the least rotation turning one
+   joint-to-joint line into the other, the mid-points matched; one joint: the neighbour's scale, no turn);
+2. similarity ICP (Umeyama 1991's closed form on nearest-neighbour pairs taken both ways, G -> S and S -> G,
+   pairs farther than ``max(3 median, 2 mm)`` dropped, so that a bone present in one set only, e.g. a sacrum,
+   does not pull);
+3. affine ICP: the same pairs, ``x' = A x + t`` by least squares, kept only when it lowers the symmetric mean
+   surface distance by `AFFINE_GAIN` or more (an affine map follows a bone that is longer than it is wide in
+   other proportions than the generic one).
+
+`BoneMap` maps points (path points), directions and frames (wrap objects).  The distances it reports are the
+symmetric mean nearest-neighbour distance of surface samples (mm).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["BoneMap", "register_bone", "register_bodies", "similarity_from_joints", "umeyama", "surface_samples", "AFFINE_GAIN"]
+
+#: least relative gain in mean surface distance for the affine map to replace the similarity
+AFFINE_GAIN = 0.05
+#: surface samples per bone
+N_SAMPLES = 4000
+#: largest stretch of the affine map against the similarity's scale (singular values within [1/x, x])
+AFFINE_STRETCH = 1.25
+#: share of the ICP's weight the joint-centre landmarks carry together
+LANDMARK_SHARE = 0.2
+#: joints whose centres are points on both models (the subtalar and mtp joints' are points on their axes only)
+CENTRE_JOINTS = ("hip", "knee", "ankle")
+
+
+@dataclass(frozen=True)
+class BoneMap:
+    """A body's map from the generic body frame to the personalised body frame, ``x' = A x + t`` (m).
+
+    body : body name; A : (3, 3); t : (3,); kind : "joints" (joint-centre similarity only), "similarity" or
+    "affine"; distances_mm : {"joints" | "similarity" | "affine": symmetric mean surface distance, mm}
+    """
+
+    body: str
+    A: np.ndarray
+    t: np.ndarray
+    kind: str
+    distances_mm: dict = field(default_factory=dict)
+
+    def __call__(self, x) -> np.ndarray:
+        """Mapped points: (..., 3) -> (..., 3)."""
+        return np.asarray(x, float) @ self.A.T + self.t
+
+    @property
+    def scale(self) -> float:
+        """Mean linear scale, ``det(A)^(1/3)``."""
+        return float(np.cbrt(abs(np.linalg.det(self.A))))
+
+    def frame(self, R) -> tuple[np.ndarray, np.ndarray]:
+        """A frame's axes carried across: (rotation (3, 3), stretch (3,)) with ``A R = R' diag(stretch)`` up to
+        shear: R' the orthonormal polar factor of ``A R``, stretch the lengths of ``A R``'s columns."""
+        M = self.A @ np.asarray(R, float)
+        U, _, Vt = np.linalg.svd(M)
+        Rn = U @ Vt
+        if np.linalg.det(Rn) < 0:
+            U[:, -1] *= -1
+            Rn = U @ Vt
+        return Rn, np.linalg.norm(M, axis=0)
+
+    def to_json(self) -> dict:
+        return {"body": self.body, "kind": self.kind, "A": self.A.tolist(), "t": self.t.tolist(),
+                "scale": round(self.scale, 4), "surface_distance_mm": {k: round(v, 2) for k, v in self.distances_mm.items()}}
+
+
+def umeyama(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None,
+            scaling: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """Weighted least-squares similarity Q ≈ s R P + t (Umeyama 1991): (s, R (3, 3), t (3,)).
+
+    P, Q : (n, 3); w : (n,) non-negative weights (None: equal), minimising Σ w_i |Q_i - s R P_i - t|².
+    """
+    w = np.ones(len(P)) if w is None else np.asarray(w, float)
+    w = w / w.sum()
+    mp, mq = w @ P, w @ Q
+    X, Y = P - mp, Q - mq
+    U, S, Vt = np.linalg.svd((Y * w[:, None]).T @ X)
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / (w @ (X**2).sum(1))) if scaling else 1.0
+    return s, R, mq - s * R @ mp
+
+
+def _least_rotation(u, v) -> np.ndarray:
+    """The least rotation turning direction u into direction v."""
+    from scipy.spatial.transform import Rotation
+
+    u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
+    ax = np.cross(u, v)
+    sn, cs = float(np.linalg.norm(ax)), float(u @ v)
+    return np.eye(3) if sn < 1e-12 else Rotation.from_rotvec(ax / sn * np.arctan2(sn, cs)).as_matrix()
+
+
+def similarity_from_joints(generic: dict, subject: dict, scale: float | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(A, t) putting the generic joint points on the subject's (joint name -> (3,) m, shared names; see the module
+    docstring, step 1); None without a shared joint (or one joint and no `scale`)."""
+    names = sorted(set(generic) & set(subject))
+    if len(names) >= 2:
+        a, b = names[:2]
+        u, v = generic[b] - generic[a], subject[b] - subject[a]
+        s = float(np.linalg.norm(v) / np.linalg.norm(u))
+        R = _least_rotation(u, v)
+        gm, sm = 0.5 * (generic[a] + generic[b]), 0.5 * (subject[a] + subject[b])
+    elif names and scale is not None:
+        s, R = float(scale), np.eye(3)
+        gm, sm = generic[names[0]], subject[names[0]]
+    else:
+        return None
+    A = s * R
+    return A, sm - A @ gm
+
+
+def surface_samples(mesh, n: int = N_SAMPLES, seed: int = 0) -> np.ndarray:
+    """(n, 3) points spread evenly over a trimesh surface (area-weighted, fixed seed), with the vertices when fewer."""
+    import trimesh
+
+    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(pts, float)
+
+
+def _pairs(X, Y, tX: cKDTree, tY: cKDTree):
+    """Nearest-neighbour pairs both ways between X (mapped generic) and Y (subject), trimmed (module docstring)."""
+    dY, iY = tY.query(X)
+    dX, iX = tX.query(Y)
+    d = np.concatenate([dY, dX])
+    keep = d <= max(3.0 * np.median(d), 2e-3)
+    src = np.concatenate([np.arange(len(X)), iX])[keep]
+    dst = np.concatenate([iY, np.arange(len(Y))])[keep]
+    return src, dst
+
+
+def _distance(X, Y) -> float:
+    """Symmetric mean nearest-neighbour distance (m)."""
+    return 0.5 * float(cKDTree(Y).query(X)[0].mean() + cKDTree(X).query(Y)[0].mean())
+
+
+def _icp(P, Y, A, t, affine: bool, landmarks=(), landmark_share: float = LANDMARK_SHARE, iterations: int = 40):
+    """Trimmed two-way ICP from generic samples P to subject samples Y, starting at (A, t); `landmarks`, pairs
+    (generic point, subject point), weigh `landmark_share` of the total together."""
+    tY = cKDTree(Y)
+    L = np.array([g for g, _ in landmarks], float).reshape(-1, 3)
+    M = np.array([q for _, q in landmarks], float).reshape(-1, 3)
+    for _ in range(iterations):
+        X = P @ A.T + t
+        src, dst = _pairs(X, Y, cKDTree(X), tY)
+        if len(src) < 12:
+            break
+        S, Q = np.vstack([P[src], L]), np.vstack([Y[dst], M])
+        w = np.ones(len(S))
+        if len(L):
+            w[len(src):] = landmark_share / (1.0 - landmark_share) * len(src) / len(L)
+        if affine:
+            H = np.column_stack([S, np.ones(len(S))]) * np.sqrt(w)[:, None]
+            B, *_ = np.linalg.lstsq(H, Q * np.sqrt(w)[:, None], rcond=None)
+            A_new, t_new = B[:3].T, B[3]
+        else:
+            sc, R, t_new = umeyama(S, Q, w)
+            A_new = sc * R
+        step = np.abs(A_new - A).max() + np.abs(t_new - t).max()
+        A, t = A_new, t_new
+        if step < 1e-6:
+            break
+    return A, t
+
+
+def register_bone(body: str, generic_mesh, subject_mesh, init: tuple[np.ndarray, np.ndarray], landmarks=(), *,
+                  affine: bool = True) -> BoneMap:
+    """Register one body's generic bone to the subject's (module docstring, steps 2-3).
+
+    generic_mesh, subject_mesh : trimesh.Trimesh in the generic / personalised body frames (m); subject_mesh None:
+        the start alone (kind "joints"); init : (A (3, 3), t (3,)) start; landmarks : pairs (generic (3,), subject
+        (3,)) of joint centres the map should keep together (each pair weighs as much as
+        ``LANDMARK_SHARE / n_landmarks`` of all the surface pairs)
+    """
+    A0, t0 = (np.asarray(v, float) for v in init)
+    if subject_mesh is None or generic_mesh is None:
+        return BoneMap(body, A0, t0, "joints")
+    P, Y = surface_samples(generic_mesh), surface_samples(subject_mesh)
+    dist = {"joints": 1e3 * _distance(P @ A0.T + t0, Y)}
+    A1, t1 = _icp(P, Y, A0, t0, affine=False, landmarks=landmarks)
+    dist["similarity"] = 1e3 * _distance(P @ A1.T + t1, Y)
+    best = BoneMap(body, A1, t1, "similarity", dist)
+    if dist["similarity"] > dist["joints"]:                      # ICP wandered off: keep the joint start
+        best = BoneMap(body, A0, t0, "joints", dist)
+    if affine:
+        A2, t2 = _icp(P, Y, best.A, best.t, affine=True, landmarks=landmarks)
+        dist["affine"] = 1e3 * _distance(P @ A2.T + t2, Y)
+        sv = np.linalg.svd(A2, compute_uv=False) / best.scale
+        if (dist["affine"] <= (1.0 - AFFINE_GAIN) * min(dist["similarity"], dist["joints"])
+                and sv.max() <= AFFINE_STRETCH and sv.min() >= 1.0 / AFFINE_STRETCH):
+            best = BoneMap(body, A2, t2, "affine", dist)
+    return best
+
+
+def _rel(poses: dict, parent: str, child: str) -> np.ndarray:
+    """4x4 child-body -> parent-body transform from ground poses."""
+    return np.linalg.solve(poses[parent], poses[child])
+
+
+def register_bodies(generic, subject_meshes: dict, subject_joints: dict, subject_poses: dict, *,
+                    affine: bool = True) -> dict:
+    """Every leg body's `BoneMap`, in chain order (pelvis, femur, tibia, talus, calcaneus, toes).
+
+    generic : `personalize.muscles.generic.GenericModel`; subject_meshes : body -> trimesh (personalised body
+    frame, m) or absent; subject_joints : `generic.joint_points` of the personalised model at its all-zero pose;
+    subject_poses : `generic.body_poses` at that pose.  Start of a body with two joint centres (pelvis: both
+    hips; femur: hip, knee; tibia: knee, ankle): `similarity_from_joints`; of the foot bones: the parent's map
+    carried through both models' all-zero-pose relative body placements,
+    ``M_b = T_s(p<-b)^-1 M_p T_g(p<-b)``.  Joint centres (hip, knee, ankle) are the ICP's landmarks.
+    """
+    chain = [("pelvis", None)]
+    for s in ("r", "l"):
+        chain += [(f"femur_{s}", "pelvis"), (f"tibia_{s}", f"femur_{s}"), (f"talus_{s}", f"tibia_{s}"),
+                  (f"calcn_{s}", f"talus_{s}"), (f"toes_{s}", f"calcn_{s}")]
+    maps: dict = {}
+    for body, parent in chain:
+        if body not in subject_poses or body not in generic.joint_points:
+            continue
+        gj, sj = generic.joint_points[body], subject_joints.get(body, {})
+        centres = [j for j in sorted(set(gj) & set(sj)) if j.rsplit("_", 1)[0] in CENTRE_JOINTS]
+        init = similarity_from_joints({j: gj[j] for j in centres}, {j: sj[j] for j in centres}) \
+            if len(centres) >= 2 else None
+        if init is None and parent in maps:
+            Tg, Ts = _rel(generic.poses, parent, body), _rel(subject_poses, parent, body)
+            Mp = np.eye(4)
+            Mp[:3, :3], Mp[:3, 3] = maps[parent].A, maps[parent].t
+            M = np.linalg.solve(Ts, Mp @ Tg)
+            init = (M[:3, :3], M[:3, 3])
+        if init is None:
+            continue
+        maps[body] = register_bone(body, generic.meshes.get(body), subject_meshes.get(body), init,
+                                   [(gj[j], sj[j]) for j in centres], affine=affine)
+    return maps
