@@ -31,6 +31,8 @@ AFFINE_GAIN = 0.05
 N_SAMPLES = 4000
 #: largest stretch of the affine map against the similarity's scale (singular values within [1/x, x])
 AFFINE_STRETCH = 1.25
+#: largest change of scale ICP may make from the start's (beyond it the start is kept)
+MAX_SCALE_CHANGE = 1.2
 #: share of the ICP's weight the joint-centre landmarks carry together
 LANDMARK_SHARE = 0.2
 #: joints whose centres are points on both models (the subtalar and mtp joints' are points on their axes only)
@@ -194,7 +196,9 @@ def register_bone(body: str, generic_mesh, subject_mesh, init: tuple[np.ndarray,
     A1, t1 = _icp(P, Y, A0, t0, affine=False, landmarks=landmarks)
     dist["similarity"] = 1e3 * _distance(P @ A1.T + t1, Y)
     best = BoneMap(body, A1, t1, "similarity", dist)
-    if dist["similarity"] > dist["joints"]:                      # ICP wandered off: keep the joint start
+    s0 = float(np.cbrt(abs(np.linalg.det(A0))))
+    if dist["similarity"] > dist["joints"] or not (1.0 / MAX_SCALE_CHANGE <= best.scale / s0 <= MAX_SCALE_CHANGE):
+        # ICP wandered off (or grew / shrank the bone past the joints' say, as on a partial toes mesh): keep the start
         best = BoneMap(body, A0, t0, "joints", dist)
     if affine:
         A2, t2 = _icp(P, Y, best.A, best.t, affine=True, landmarks=landmarks)

@@ -28,6 +28,8 @@ __all__ = ["GENERIC_ENV", "GENERIC_FILE", "LEG_BODIES", "GenericModel", "generic
 GENERIC_ENV = "PERSONALIZE_GAIT2392"
 #: the generic model's file inside the shared data folder
 GENERIC_FILE = Path("opensim_gait2392") / "gait2392_thelen2003muscle.osim"
+#: meshes left out of the registration surfaces: the sacrum (a subject's pelvis is often the hip bones alone)
+LEFT_OUT_MESHES = ("sacrum.vtp",)
 #: body base names that carry leg muscles (the trunk muscles ride on ``torso``, which the personalised model lacks)
 LEG_BODIES = ("pelvis", "femur", "tibia", "talus", "calcn", "toes")
 
@@ -96,7 +98,7 @@ class GenericModel:
 
     path : the .osim file
     model : opensim.Model (initialised; its default state has every coordinate at zero)
-    meshes : body -> trimesh.Trimesh, the body's bone meshes merged (metres, body frame)
+    meshes : body -> trimesh.Trimesh, the body's bone meshes merged (metres, body frame; not `LEFT_OUT_MESHES`)
     joint_points : body -> {joint name: (3,) m}, where each joint the body takes part in is, in the body's frame, at
         the all-zero pose (`joint_points`; the knee's includes its translation at ``knee_angle = 0``)
     poses : body -> 4x4 pose in ground at the all-zero pose (`body_poses`)
@@ -140,7 +142,7 @@ def _load(path: str, mtime: float) -> GenericModel:
         parts = []
         for k in range(b.getPropertyByName("attached_geometry").size()):
             g = osim.Mesh.safeDownCast(b.get_attached_geometry(k))
-            if g is None:
+            if g is None or g.get_mesh_file() in LEFT_OUT_MESHES:
                 continue
             f = geometry / g.get_mesh_file()
             if not f.is_file():
