@@ -408,8 +408,12 @@ def write_meshes(pm: PersonalModel, meshes: dict, folder: Path) -> dict:
     return out
 
 
-def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = None) -> Path:
-    """Export to OpenSim (``kinematics.io.opensim_io.to_opensim``) with the bone meshes attached to their bodies."""
+def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = None, extend=None) -> Path:
+    """Export to OpenSim (``kinematics.io.opensim_io.to_opensim``) with the bone meshes attached to their bodies.
+
+    extend : callable(opensim.Model) run on the finalised model before it is written (the muscles,
+        `personalize.muscles.personalise_muscles`), or None
+    """
     import os
 
     from lowerlimb.atomic import atomic_path
@@ -424,6 +428,8 @@ def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = Non
         g.setName(f"{bone}_geometry")
         b.attachGeometry(g)
     om.finalizeConnections()
+    if extend is not None:
+        extend(om)
     with atomic_path(path) as tmp:
         if not om.printToXML(os.fspath(tmp)):
             raise InputError(path, "OpenSim could not write the model")

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["scale_generic", "compare_models", "SWEEPS", "TOLERANCE", "MIN_MOMENT_ARM"]
+__all__ = ["scale_generic", "compare_models", "compare_run", "table", "generic_virtual_markers", "SWEEPS", "TOLERANCE", "MIN_MOMENT_ARM"]
 
 #: generic coordinate base name -> (first, last) degrees of the sweep
 SWEEPS = {"hip_flexion": (-20.0, 60.0), "knee_angle": (0.0, -90.0), "ankle_angle": (-20.0, 20.0)}
@@ -134,7 +134,7 @@ def scale_generic(generic, subject_markers: dict, mass: float, work: Path):
 
 def _sweep_poses(side: str, n: int) -> list[tuple[str, float]]:
     # cell mid-points: no sample on a conditional path point's switch (gait2392's sit on round angles)
-    u = (np.arange(n) + 0.5) / n
+    u = (np.arange(n) + 0.5) / n + 0.0137          # off round angles
     return [(f"{c}_{side}", np.radians(a + (b - a) * v)) for c, (a, b) in SWEEPS.items() for v in u]
 
 
@@ -174,3 +174,43 @@ def compare_models(personal, scaled, cmap, muscles, sides=("r",), n: int = 9) ->
         counts[key] = len(v)
         fractions[key] = float(np.mean(np.asarray(v) <= TOLERANCE)) if v else float("nan")
     return {"muscles": rows, "fractions": fractions, "counts": counts, "tolerance": TOLERANCE}
+
+
+def compare_run(model_dir: str | os.PathLike, subject_dir: str | os.PathLike, work: str | os.PathLike,
+                n: int = 9, sides=("r",)) -> dict:
+    """`compare_models` on a pipeline output (``model.osim`` with its muscles, ``muscles.json``) against gait2392
+    scaled to the phantom subject's virtual markers (``truth.json``'s ``landmarks_lab_standing_m``)."""
+    import json
+
+    from kinematics.io.opensim_io import import_opensim
+
+    from .generic import load_generic_model
+    from .poses import CoordinateMap
+
+    osim = import_opensim()
+    model_dir, subject_dir = Path(model_dir), Path(subject_dir)
+    rep = json.loads((model_dir / "muscles.json").read_text(encoding="utf-8"))
+    truth = json.loads((subject_dir / "truth.json").read_text(encoding="utf-8"))
+    subj = json.loads((subject_dir / "subject.json").read_text(encoding="utf-8")) \
+        if (subject_dir / "subject.json").is_file() else {}
+    personal = osim.Model(os.fspath(model_dir / "model.osim"))
+    personal.initSystem()
+    generic = load_generic_model(rep["generic_model"])
+    scaled = scale_generic(generic, truth["landmarks_lab_standing_m"], float(subj.get("mass") or 75.0), Path(work))
+    c = rep["coordinates"]
+    cmap = CoordinateMap({g: (v["subject"], v["sign"], v["offset"]) for g, v in c["coordinates"].items()}, c["held"])
+    return compare_models(personal, scaled, cmap, rep["muscles"], sides, n=n)
+
+
+def table(result: dict) -> str:
+    """Plain-text table of `compare_models`' result: one row per muscle, then the fractions within tolerance."""
+    cols = ("length", *SWEEPS)
+    head = f"{'muscle':14s} " + " ".join(f"{c:>12s}" for c in cols)
+    lines = [head, "-" * len(head)]
+    for m, r in result["muscles"].items():
+        lines.append(f"{m:14s} " + " ".join(f"{'-' if r[c] is None else f'{100 * r[c]:.1f} %':>12s}" for c in cols))
+    lines.append("-" * len(head))
+    lines.append(f"{'within ' + format(100 * result['tolerance'], '.0f') + ' %':14s} "
+                 + " ".join(f"{100 * result['fractions'][c]:>10.0f} %" for c in cols))
+    lines.append(f"{'muscles':14s} " + " ".join(f"{result['counts'][c]:>12d}" for c in cols))
+    return "\n".join(lines)

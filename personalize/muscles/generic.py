@@ -133,7 +133,7 @@ def _load(path: str, mtime: float) -> GenericModel:
     m = osim.Model(path)
     m.initSystem()
     geometry = Path(path).parent / "Geometry"
-    meshes, joints = {}, {}
+    meshes = {}
     bodies = m.getBodySet()
     for i in range(bodies.getSize()):
         b = bodies.get(i)
