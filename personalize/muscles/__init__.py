@@ -16,7 +16,7 @@ personalised model does not have: the 86 leg muscles are carried (43 a side).
 """
 from __future__ import annotations
 
-__all__ = ["MUSCLE_CHOICES", "personalise_muscles", "subject_body_meshes"]
+__all__ = ["MUSCLE_CHOICES", "personalise_muscles", "subject_body_meshes", "subject_body_landmarks"]
 
 #: values of ``--muscles``
 MUSCLE_CHOICES = ("none", "gait2392")
@@ -44,13 +44,37 @@ def subject_body_meshes(meshes: dict, body_frames: dict) -> dict:
     return {b: (p[0] if len(p) == 1 else trimesh.util.concatenate(p)) for b, p in parts.items()}
 
 
-def personalise_muscles(om, subject_meshes: dict, sides, generic_path=None, *, affine: bool = True) -> dict:
+def subject_body_landmarks(landmarks: dict, body_frames: dict) -> dict:
+    """body -> {landmark name (`generic.side_free`): (3,) m in the body frame}.
+
+    landmarks : bone -> ({name: (3,) internal frame}, body) (`pipeline.model.bone_landmarks_lab`); body_frames :
+    as `subject_body_meshes` (x_body = Rᵀ (x - o)).  The patella's are left out (no gait2392 body).
+    """
+    import numpy as np
+
+    from .generic import side_free
+
+    out: dict = {}
+    for bone, (pts, body) in sorted(landmarks.items()):
+        if body not in body_frames or bone.startswith("patella"):
+            continue
+        o, R = (np.asarray(v, float) for v in body_frames[body])
+        for n, x in pts.items():
+            out.setdefault(body, {})[side_free(n, body)] = (np.asarray(x, float) - o) @ R
+    return out
+
+
+def personalise_muscles(om, subject_meshes: dict, sides, generic_path=None, *, affine: bool = True,
+                        subject_landmarks: dict | None = None) -> dict:
     """Add gait2392's leg muscles to the personalised opensim model `om` (module docstring); `om` is left
     finalised with the muscles.
 
     om : opensim.Model of the personalised model (`kinematics.io.opensim_io.to_opensim`, bodies named as
         gait2392's); subject_meshes : body -> trimesh in the body's frame (`subject_body_meshes`); sides : 'r'/'l'
     generic_path : the generic model file (None: `generic.generic_model_path`'s search)
+    subject_landmarks : body -> {name: (3,) m, body frame} (`subject_body_landmarks`): matched by name with the
+        same detectors' landmarks on gait2392's bones, the registration's anatomical correspondences (None: joint
+        centres only)
 
     Returns the report (JSON-ready): generic model file, per-body registration, coordinate map, muscles added /
     skipped, per-muscle lengths.
@@ -69,7 +93,8 @@ def personalise_muscles(om, subject_meshes: dict, sides, generic_path=None, *, a
     generic = load_generic_model(generic_path)
     om.finalizeConnections()
     state = zero_state(om)
-    maps = register_bodies(generic, subject_meshes, joint_points(om, state), body_poses(om, state), affine=affine)
+    maps = register_bodies(generic, subject_meshes, joint_points(om, state), body_poses(om, state), affine=affine,
+                           subject_landmarks=subject_landmarks)
     cmap = joint_offsets(generic, om, maps, sides)
     added = add_muscles(om, generic, maps, cmap, sides)
     om.finalizeConnections()

@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["BoneMap", "register_bone", "register_bodies", "similarity_from_joints", "umeyama", "surface_samples", "AFFINE_GAIN"]
+__all__ = ["BoneMap", "register_bone", "register_bodies", "landmark_pairs", "similarity_from_joints", "umeyama",
+           "surface_samples", "AFFINE_GAIN", "BORROWED", "MIN_LANDMARKS"]
 
 #: least relative gain in mean surface distance for the affine map to replace the similarity
 AFFINE_GAIN = 0.05
@@ -37,14 +38,20 @@ MAX_SCALE_CHANGE = 1.2
 LANDMARK_SHARE = 0.2
 #: joints whose centres are points on both models (the subtalar and mtp joints' are points on their axes only)
 CENTRE_JOINTS = ("hip", "knee", "ankle")
+#: least number of anatomical landmark pairs for a landmark start (a similarity needs three points off one line)
+MIN_LANDMARKS = 3
+#: body base name -> (parent body base name, the parent's landmarks that also place the body): the toes, which
+#: carry no landmark of their own, by the metatarsal heads they articulate with
+BORROWED = {"toes": ("calcn", ("met1_head_centre", "met5_head_centre"))}
 
 
 @dataclass(frozen=True)
 class BoneMap:
     """A body's map from the generic body frame to the personalised body frame, ``x' = A x + t`` (m).
 
-    body : body name; A : (3, 3); t : (3,); kind : "joints" (joint-centre similarity only), "similarity" or
-    "affine"; distances_mm : {"joints" | "similarity" | "affine": symmetric mean surface distance, mm}
+    body : body name; A : (3, 3); t : (3,); kind : "joints" (the start only: landmark or joint-centre
+    similarity), "similarity" or "affine"; distances_mm : {"joints" | "similarity" | "affine": symmetric mean
+    surface distance, mm}; landmarks_mm : {landmark: |A g + t - q|, mm} over the registration's pairs
     """
 
     body: str
@@ -52,6 +59,7 @@ class BoneMap:
     t: np.ndarray
     kind: str
     distances_mm: dict = field(default_factory=dict)
+    landmarks_mm: dict = field(default_factory=dict)
 
     def __call__(self, x) -> np.ndarray:
         """Mapped points: (..., 3) -> (..., 3)."""
@@ -75,7 +83,8 @@ class BoneMap:
 
     def to_json(self) -> dict:
         return {"body": self.body, "kind": self.kind, "A": self.A.tolist(), "t": self.t.tolist(),
-                "scale": round(self.scale, 4), "surface_distance_mm": {k: round(v, 2) for k, v in self.distances_mm.items()}}
+                "scale": round(self.scale, 4), "surface_distance_mm": {k: round(v, 2) for k, v in self.distances_mm.items()},
+                "landmark_residual_mm": dict(self.landmarks_mm)}
 
 
 def umeyama(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None,
@@ -150,9 +159,10 @@ def _distance(X, Y) -> float:
     return 0.5 * float(cKDTree(Y).query(X)[0].mean() + cKDTree(X).query(Y)[0].mean())
 
 
-def _icp(P, Y, A, t, affine: bool, landmarks=(), landmark_share: float = LANDMARK_SHARE, iterations: int = 40):
+def _icp(P, Y, A, t, affine: bool, landmarks=(), landmark_share: float | None = None, iterations: int = 40):
     """Trimmed two-way ICP from generic samples P to subject samples Y, starting at (A, t); `landmarks`, pairs
     (generic point, subject point), weigh `landmark_share` of the total together."""
+    landmark_share = LANDMARK_SHARE if landmark_share is None else landmark_share
     tY = cKDTree(Y)
     L = np.array([g for g, _ in landmarks], float).reshape(-1, 3)
     M = np.array([q for _, q in landmarks], float).reshape(-1, 3)
@@ -180,15 +190,25 @@ def _icp(P, Y, A, t, affine: bool, landmarks=(), landmark_share: float = LANDMAR
 
 
 def register_bone(body: str, generic_mesh, subject_mesh, init: tuple[np.ndarray, np.ndarray], landmarks=(), *,
-                  affine: bool = True) -> BoneMap:
+                  affine: bool = True, names=None) -> BoneMap:
     """Register one body's generic bone to the subject's (module docstring, steps 2-3).
 
     generic_mesh, subject_mesh : trimesh.Trimesh in the generic / personalised body frames (m); subject_mesh None:
         the start alone (kind "joints"); init : (A (3, 3), t (3,)) start; landmarks : pairs (generic (3,), subject
-        (3,)) of joint centres the map should keep together (each pair weighs as much as
-        ``LANDMARK_SHARE / n_landmarks`` of all the surface pairs)
+        (3,)) of points the map should keep together (anatomical landmarks or joint centres; each pair weighs as
+        much as ``LANDMARK_SHARE / n_landmarks`` of all the surface pairs); names : the pairs' names (the map's
+        `BoneMap.landmarks_mm` residuals)
     """
     A0, t0 = (np.asarray(v, float) for v in init)
+    best = _register(body, generic_mesh, subject_mesh, A0, t0, landmarks, affine)
+    if names is not None and len(landmarks):
+        res = {n: round(1e3 * float(np.linalg.norm(best(g) - q)), 2) for n, (g, q) in zip(names, landmarks)}
+        best = BoneMap(best.body, best.A, best.t, best.kind, best.distances_mm, res)
+    return best
+
+
+def _register(body, generic_mesh, subject_mesh, A0, t0, landmarks, affine) -> BoneMap:
+    """`register_bone` without the landmark residuals."""
     if subject_mesh is None or generic_mesh is None:
         return BoneMap(body, A0, t0, "joints")
     P, Y = surface_samples(generic_mesh), surface_samples(subject_mesh)
@@ -215,16 +235,43 @@ def _rel(poses: dict, parent: str, child: str) -> np.ndarray:
     return np.linalg.solve(poses[parent], poses[child])
 
 
+def _carried(T: np.ndarray, x) -> np.ndarray:
+    """Points (..., 3) of a parent body's frame in a child's, T the 4x4 child -> parent transform."""
+    return (np.asarray(x, float) - T[:3, 3]) @ T[:3, :3]
+
+
+def landmark_pairs(generic, subject_landmarks: dict, subject_poses: dict, body: str) -> dict:
+    """name -> (generic (3,), subject (3,)) in the body's two frames (m): the landmarks both models have on `body`
+    (`GenericModel.landmarks`, `subject_landmarks` by name), and `BORROWED` ones from the parent body carried
+    through each model's all-zero-pose relative placement."""
+    gl, sl = (generic.landmarks or {}).get(body, {}), subject_landmarks.get(body, {})
+    out = {n: (np.asarray(gl[n], float), np.asarray(sl[n], float)) for n in sorted(set(gl) & set(sl))}
+    base, _, side = body.rpartition("_")
+    if base in BORROWED:
+        pbase, names = BORROWED[base]
+        parent = f"{pbase}_{side}"
+        gp, sp = (generic.landmarks or {}).get(parent, {}), subject_landmarks.get(parent, {})
+        if parent in generic.poses and parent in subject_poses:
+            Tg, Ts = _rel(generic.poses, parent, body), _rel(subject_poses, parent, body)
+            out.update({n: (_carried(Tg, gp[n]), _carried(Ts, sp[n])) for n in names if n in gp and n in sp})
+    return out
+
+
 def register_bodies(generic, subject_meshes: dict, subject_joints: dict, subject_poses: dict, *,
-                    affine: bool = True) -> dict:
+                    affine: bool = True, subject_landmarks: dict | None = None) -> dict:
     """Every leg body's `BoneMap`, in chain order (pelvis, femur, tibia, talus, calcaneus, toes).
 
     generic : `personalize.muscles.generic.GenericModel`; subject_meshes : body -> trimesh (personalised body
     frame, m) or absent; subject_joints : `generic.joint_points` of the personalised model at its all-zero pose;
-    subject_poses : `generic.body_poses` at that pose.  Start of a body with two joint centres (pelvis: both
-    hips; femur: hip, knee; tibia: knee, ankle): `similarity_from_joints`; of the foot bones: the parent's map
-    carried through both models' all-zero-pose relative body placements,
-    ``M_b = T_s(p<-b)^-1 M_p T_g(p<-b)``.  Joint centres (hip, knee, ankle) are the ICP's landmarks.
+    subject_poses : `generic.body_poses` at that pose; subject_landmarks : body -> {name: (3,) m, body frame}
+    (`personalize.muscles.subject_body_landmarks`) or None.
+
+    Start of a body with `MIN_LANDMARKS` or more anatomical landmark pairs (`landmark_pairs`): their least-squares
+    similarity (`umeyama`), and the pairs are the ICP's landmarks, so that a nearly axisymmetric bone (the tibia)
+    cannot settle turned about its shaft.  Otherwise (module docstring, step 1): a body with two joint centres
+    (pelvis: both hips; femur: hip, knee; tibia: knee, ankle) starts from `similarity_from_joints`, a foot bone
+    from the parent's map carried through both models' all-zero-pose relative body placements,
+    ``M_b = T_s(p<-b)^-1 M_p T_g(p<-b)``, and the joint centres (hip, knee, ankle) are the ICP's landmarks.
     """
     chain = [("pelvis", None)]
     for s in ("r", "l"):
@@ -233,6 +280,14 @@ def register_bodies(generic, subject_meshes: dict, subject_joints: dict, subject
     maps: dict = {}
     for body, parent in chain:
         if body not in subject_poses or body not in generic.joint_points:
+            continue
+        pairs = landmark_pairs(generic, subject_landmarks or {}, subject_poses, body)
+        if len(pairs) >= MIN_LANDMARKS:
+            P = np.array([g for g, _ in pairs.values()])
+            Q = np.array([q for _, q in pairs.values()])
+            sc, R, t = umeyama(P, Q)
+            maps[body] = register_bone(body, generic.meshes.get(body), subject_meshes.get(body), (sc * R, t),
+                                       list(pairs.values()), affine=affine, names=list(pairs))
             continue
         gj, sj = generic.joint_points[body], subject_joints.get(body, {})
         centres = [j for j in sorted(set(gj) & set(sj)) if j.rsplit("_", 1)[0] in CENTRE_JOINTS]
@@ -246,6 +301,7 @@ def register_bodies(generic, subject_meshes: dict, subject_joints: dict, subject
             init = (M[:3, :3], M[:3, 3])
         if init is None:
             continue
+        pairs.update({j: (gj[j], sj[j]) for j in centres})
         maps[body] = register_bone(body, generic.meshes.get(body), subject_meshes.get(body), init,
-                                   [(gj[j], sj[j]) for j in centres], affine=affine)
+                                   list(pairs.values()), affine=affine, names=list(pairs))
     return maps

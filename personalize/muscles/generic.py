@@ -21,8 +21,8 @@ import numpy as np
 
 from lowerlimb.errors import InputError
 
-__all__ = ["GENERIC_ENV", "GENERIC_FILE", "LEG_BODIES", "GenericModel", "generic_model_path", "load_generic_model", "joint_points", "zero_state", "body_poses",
-           "read_vtp"]
+__all__ = ["GENERIC_ENV", "GENERIC_FILE", "LEG_BODIES", "GenericModel", "generic_model_path", "load_generic_model",
+           "joint_points", "zero_state", "body_poses", "read_vtp", "generic_landmarks", "side_free", "LANDMARK_BONES"]
 
 #: environment variable naming the generic model file
 GENERIC_ENV = "PERSONALIZE_GAIT2392"
@@ -32,6 +32,9 @@ GENERIC_FILE = Path("opensim_gait2392") / "gait2392_thelen2003muscle.osim"
 LEFT_OUT_MESHES = ("sacrum.vtp",)
 #: body base names that carry leg muscles (the trunk muscles ride on ``torso``, which the personalised model lacks)
 LEG_BODIES = ("pelvis", "femur", "tibia", "talus", "calcn", "toes")
+#: right-side bone (landmark detector's name) -> the gait2392 body it rides on; the fibula is a mesh of ``tibia_r``
+LANDMARK_BONES = {"femur_r": "femur_r", "tibia_r": "tibia_r", "fibula_r": "tibia_r", "talus_r": "talus_r",
+                  "calcn_r": "calcn_r", "toes_r": "toes_r"}
 
 
 def generic_model_path(path: str | os.PathLike | None = None, *, required: bool = True) -> Path | None:
@@ -102,6 +105,8 @@ class GenericModel:
     joint_points : body -> {joint name: (3,) m}, where each joint the body takes part in is, in the body's frame, at
         the all-zero pose (`joint_points`; the knee's includes its translation at ``knee_angle = 0``)
     poses : body -> 4x4 pose in ground at the all-zero pose (`body_poses`)
+    landmarks : body -> {landmark name (`side_free`): (3,) m, body frame}, the repository's detectors on gait2392's
+        own bones (`generic_landmarks`)
     """
 
     path: Path
@@ -109,6 +114,7 @@ class GenericModel:
     meshes: dict
     joint_points: dict
     poses: dict
+    landmarks: dict = None
 
     def muscles(self) -> list:
         """The generic model's muscles whose path points all ride on leg bodies (`LEG_BODIES`)."""
@@ -133,7 +139,7 @@ def _load(path: str, mtime: float) -> GenericModel:
     m = osim.Model(path)
     m.initSystem()
     geometry = Path(path).parent / "Geometry"
-    meshes = {}
+    meshes, files = {}, {}
     bodies = m.getBodySet()
     for i in range(bodies.getSize()):
         b = bodies.get(i)
@@ -150,10 +156,49 @@ def _load(path: str, mtime: float) -> GenericModel:
             V, F = read_vtp(f)
             sc = np.array([g.get_scale_factors().get(j) for j in range(3)])
             parts.append(trimesh.Trimesh(V * sc, F, process=True))
+            files[g.get_mesh_file()] = (b.getName(), parts[-1])
         if parts:
             meshes[b.getName()] = trimesh.util.concatenate(parts)
     state = zero_state(m)
-    return GenericModel(Path(path), m, meshes, joint_points(m, state), body_poses(m, state))
+    return GenericModel(Path(path), m, meshes, joint_points(m, state), body_poses(m, state),
+                        generic_landmarks(meshes, files))
+
+
+def side_free(name: str, body: str) -> str:
+    """A landmark's name with its side marker dropped on a sided body (``RKNE`` on ``femur_r`` -> ``KNE``), so
+    that a right and a left bone's landmarks share names; the pelvis's names (``RASI``, ``LASI``) are kept."""
+    import re
+
+    if body.endswith(("_r", "_l")) and re.fullmatch(r"[RL][A-Z0-9]{3}", name):
+        return name[1:]
+    return name
+
+
+def generic_landmarks(meshes: dict, files: dict) -> dict:
+    """body -> {name: (3,) m}: `personalize.landmarks.detect_landmarks` on gait2392's right bones and pelvis (body
+    frames, the tibia and fibula meshes of ``tibia_r`` apart), names `side_free`; the left bodies' from the right
+    ones mirrored, ``z -> -z`` (gait2392's left meshes are the right ones mirrored).
+
+    meshes : body -> merged trimesh (`GenericModel.meshes`); files : mesh file -> (body, trimesh)
+    """
+    from personalize.landmarks import detect_landmarks
+
+    bones = {"pelvis": meshes["pelvis"]} if "pelvis" in meshes else {}
+    for f, (body, mesh) in files.items():
+        if body.endswith("_r"):
+            bones["fibula_r" if "fibula" in f else body] = mesh
+    ls = detect_landmarks(bones, trust_names=True)
+    out: dict = {}
+    for bone, res in ls.bones.items():
+        body = "pelvis" if bone == "pelvis" else LANDMARK_BONES.get(bone)
+        if body is None:
+            continue
+        for n, lm in res.landmarks.items():
+            x = np.asarray(lm.position, float)
+            out.setdefault(body, {})[side_free(n, body)] = x
+            if body != "pelvis":
+                out.setdefault(body[:-1] + "l", {})[side_free(n, body)] = x * [1.0, 1.0, -1.0]
+    return out
 
 
 def zero_state(model):

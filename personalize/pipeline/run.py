@@ -84,7 +84,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     from ..outputs import replaced_dir
     from ..parameter_fusion import fuse_segment_lengths
     from .marker_assignment import model_markers
-    from .model import bone_meshes_lab, joints_on_bones, pelvis_bone_frame, segment_placements
+    from .model import bone_landmarks_lab, bone_meshes_lab, joints_on_bones, pelvis_bone_frame, segment_placements
     from .model_checks import bone_segment_lengths, check_model
     from .trials import chain_blend, solve_trials
 
@@ -132,7 +132,8 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
                     {**prior_tissue(est, ms, [m.name for m in pm.model.markers]), **(skin or {})},
                     bone_segment_lengths(joints, inputs.sides), bony)
     truth = truth_in_static_lab(inputs)
-    add_muscles, muscle_report = _muscle_step(muscles, gait2392, pm, meshes_lab, inputs.sides, notes=summary.notes)
+    add_muscles, muscle_report = _muscle_step(muscles, gait2392, pm, meshes_lab, inputs.sides, notes=summary.notes,
+                                              landmarks_lab=bone_landmarks_lab(bones.landmarks, placements, inputs.sides))
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)
         say("writing meshes and model")
@@ -160,14 +161,17 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     return summary.to_json()
 
 
-def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, notes: list):
+def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, notes: list, landmarks_lab=None):
     """(callable(opensim.Model) adding the muscles or None, the report dict it fills).
+
+    meshes_lab : `model.bone_meshes_lab`; landmarks_lab : `model.bone_landmarks_lab` (the registration's
+    anatomical correspondences) or None
 
     Raises
     ------
     InputError : ``muscles`` not one of none / gait2392, or gait2392 asked for and the generic model not found
     """
-    from ..muscles import MUSCLE_CHOICES, personalise_muscles, subject_body_meshes
+    from ..muscles import MUSCLE_CHOICES, personalise_muscles, subject_body_landmarks, subject_body_meshes
     from ..muscles.generic import generic_model_path
 
     if muscles is not None and muscles not in MUSCLE_CHOICES:
@@ -176,6 +180,7 @@ def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, not
         return None, {}
     path = generic_model_path(gait2392, required=muscles == "gait2392")
     body_meshes = subject_body_meshes(meshes_lab, pm.body_frames)
+    body_landmarks = subject_body_landmarks(landmarks_lab or {}, pm.body_frames)
     missing = [b for s in sides for b in ("pelvis", f"femur_{s}", f"tibia_{s}") if b not in body_meshes]
     if path is None or missing:
         if muscles == "gait2392":
@@ -186,7 +191,7 @@ def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, not
     report: dict = {}
 
     def add(om):
-        report.update(personalise_muscles(om, body_meshes, tuple(sides), path))
+        report.update(personalise_muscles(om, body_meshes, tuple(sides), path, subject_landmarks=body_landmarks))
 
     return add, report
 
