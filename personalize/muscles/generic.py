@@ -22,7 +22,8 @@ import numpy as np
 from lowerlimb.errors import InputError
 
 __all__ = ["GENERIC_ENV", "GENERIC_FILE", "LEG_BODIES", "GenericModel", "generic_model_path", "load_generic_model",
-           "joint_points", "zero_state", "body_poses", "read_vtp", "generic_landmarks", "side_free", "LANDMARK_BONES"]
+           "joint_points", "zero_state", "body_poses", "read_vtp", "generic_landmarks", "side_free", "LANDMARK_BONES",
+           "anatomical_points"]
 
 #: environment variable naming the generic model file
 GENERIC_ENV = "PERSONALIZE_GAIT2392"
@@ -174,6 +175,30 @@ def side_free(name: str, body: str) -> str:
     return name
 
 
+def _closest_on_first(p, d, q, e):
+    """The point of line (p, d) closest to line (q, e), or None for parallel lines."""
+    d, e = d / np.linalg.norm(d), e / np.linalg.norm(e)
+    b = float(d @ e)
+    if 1.0 - b * b < 1e-9:
+        return None
+    w = p - q
+    return p + d * ((b * (e @ w) - d @ w) / (1.0 - b * b))
+
+
+def anatomical_points(res) -> dict:
+    """name -> (3,) m: a bone's detected landmarks (`personalize.landmarks.BoneLandmarks`) and the points its axes
+    define: ``neck_shaft_point``, the femoral neck axis's point nearest the shaft axis (with the head centre it
+    fixes the neck's direction: anteversion and neck-shaft angle, which no surface landmark does)."""
+    out = {n: np.asarray(lm.position, float) for n, lm in res.landmarks.items()}
+    ax = res.axes
+    if "neck_axis" in ax and "shaft_axis" in ax:
+        x = _closest_on_first(*(np.asarray(v, float) for v in (ax["neck_axis"].point, ax["neck_axis"].direction,
+                                                               ax["shaft_axis"].point, ax["shaft_axis"].direction)))
+        if x is not None:
+            out["neck_shaft_point"] = x
+    return out
+
+
 def generic_landmarks(meshes: dict, files: dict) -> dict:
     """body -> {name: (3,) m}: `personalize.landmarks.detect_landmarks` on gait2392's right bones and pelvis (body
     frames, the tibia and fibula meshes of ``tibia_r`` apart), names `side_free`; the left bodies' from the right
@@ -193,8 +218,7 @@ def generic_landmarks(meshes: dict, files: dict) -> dict:
         body = "pelvis" if bone == "pelvis" else LANDMARK_BONES.get(bone)
         if body is None:
             continue
-        for n, lm in res.landmarks.items():
-            x = np.asarray(lm.position, float)
+        for n, x in anatomical_points(res).items():
             out.setdefault(body, {})[side_free(n, body)] = x
             if body != "pelvis":
                 out.setdefault(body[:-1] + "l", {})[side_free(n, body)] = x * [1.0, 1.0, -1.0]

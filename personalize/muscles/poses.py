@@ -99,6 +99,14 @@ def _rotation(model, state, parent: str, child: str) -> np.ndarray:
     return np.array([[R.get(r, c) for c in range(3)] for r in range(3)])
 
 
+def _in_parent(generic, parent: str, child: str, x):
+    """A child-frame point in the parent's frame at the generic all-zero pose (None stays None)."""
+    if x is None:
+        return None
+    T = np.linalg.solve(generic.poses[parent], generic.poses[child])
+    return T[:3, :3] @ np.asarray(x, float) + T[:3, 3]
+
+
 def joint_offsets(generic, subject_model, maps: dict, sides) -> CoordinateMap:
     """The `CoordinateMap` of the module docstring.
 
@@ -120,7 +128,10 @@ def joint_offsets(generic, subject_model, maps: dict, sides) -> CoordinateMap:
             p, c = f"{pb}_{s}" if pb != "pelvis" else pb, f"{cb}_{s}"
             if p not in maps or c not in maps:
                 continue
-            Rp, Rc = maps[p].frame(np.eye(3))[0], maps[c].frame(np.eye(3))[0]
+            # each map's turn at the joint (a twisted long bone turns by its torsion there)
+            at = generic.joint_points[c].get(f"{joint}_{s}")
+            Rp, Rc = (maps[b].frame(np.eye(3), at=None if at is None else x)[0]
+                      for b, x in ((p, _in_parent(generic, p, c, at)), (c, at)))
             target = Rp @ _rotation(generic.model, gstate, p, c) @ Rc.T
             coords = [n for n in (f"{joint}_flexion_{s}", f"{joint}_adduction_{s}", f"{joint}_rotation_{s}",
                                   f"{joint}_angle_{s}") if n in names]

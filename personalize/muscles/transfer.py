@@ -77,8 +77,9 @@ def _wrap_objects(osim, gbody, sbody, bmap) -> int:
 
         xyz = _vec(w.get_xyz_body_rotation())
         R = Rotation.from_euler("XYZ", xyz).as_matrix()
-        Rn, stretch = bmap.frame(R)
-        w.set_translation(osim.Vec3(*bmap(_vec(w.get_translation()))))
+        x = _vec(w.get_translation())
+        Rn, stretch = bmap.frame(R, at=x)
+        w.set_translation(osim.Vec3(*bmap(x)))
         w.set_xyz_body_rotation(osim.Vec3(*Rotation.from_matrix(Rn).as_euler("XYZ")))
         for cls, props in (("WrapCylinder", (("radius", (0, 1)), ("length", (2,)))),
                            ("WrapSphere", (("radius", (0, 1, 2)),)),
