@@ -40,7 +40,7 @@ def build(out: Path, seed: int = 0) -> tuple[Path, Path]:
 
 
 def main() -> None:
-    from personalize.muscles.compare import compare_run, table
+    from personalize.muscles.compare import compare_run, table, worst
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=None, help="work folder (default: a temporary one)")
@@ -54,6 +54,13 @@ def main() -> None:
         subject, model = (a.subject, a.model) if a.subject and a.model else build(out)
         res = compare_run(model, subject, out / "scale", n=a.n)
         print(table(res))
+        print("\nwithin 15 % (target >= 90 %): " + ", ".join(
+            f"{k} {100 * v:.0f} % of {res['counts'][k]}" for k, v in res["fractions"].items()))
+        for k, rows in worst(res).items():
+            print(f"worst {k:12s} " + ", ".join(f"{m} {100 * e:.0f} %" for m, e in rows))
+        rep = json.loads((model / "muscles.json").read_text(encoding="utf-8"))
+        print("knee axial rotation held to match gait2392's posture (deg): " + ", ".join(
+            f"{k} {v * 57.29577951308232:.1f}" for k, v in rep["coordinates"]["held"].items() if "rotation" in k))
         if a.json:
             a.json.write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")
 

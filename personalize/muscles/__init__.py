@@ -4,8 +4,10 @@ bones, their optimal fibre and tendon slack lengths re-estimated.
 `personalise_muscles` runs the steps on a personalised opensim model:
 
 1. the generic model (`generic.load_generic_model`: gait2392, the user's copy);
-2. each leg body's generic bone registered to the subject's (`bone_registration.register_bodies`: joint-centre
-   start, similarity ICP, affine ICP when it fits measurably better);
+2. each leg body's generic bone registered to the subject's (`bone_registration.register_bodies`: start from the
+   anatomical landmarks both bones show (the same detectors on gait2392's bones and the subject's), the tibia
+   twisted by its torsion, then similarity ICP anchored on the landmarks, affine ICP when it fits measurably
+   better; the femur from its joint centres and surface);
 3. the two models' equivalent postures (`poses.joint_offsets`);
 4. the muscles' paths mapped body by body (`transfer.add_muscles`);
 5. l_o and l_s re-estimated so that normalised fibre lengths over the range of motion stay the generic model's
@@ -102,8 +104,9 @@ def personalise_muscles(om, subject_meshes: dict, sides, generic_path=None, *, a
     lengths = calibrate_lengths(generic.model, om, added["muscles"], cmap, sides)
     om.finalizeConnections()
     return {"generic_model": str(generic.path), "source": "gait2392 (opensim-models, Apache-2.0)",
-            "method": "per-body registration of the generic bones (joint-centre start, similarity then affine ICP); "
-                      "path points mapped; l_o and l_s after Modenese et al. 2016",
+            "method": "per-body registration of the generic bones (anatomical-landmark start and anchors, tibial "
+                      "torsion, similarity then affine ICP; femur: joint-centre start); path points mapped; l_o and "
+                      "l_s after Modenese et al. 2016",
             "units": "m, mm for distances, rad",
             "bodies": {b: m.to_json() for b, m in maps.items()}, "coordinates": cmap.to_json(),
             "muscles": added["muscles"], "skipped": added["skipped"], "wrap_objects": added["wrap_objects"],

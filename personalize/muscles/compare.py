@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["scale_generic", "compare_models", "compare_run", "table", "generic_virtual_markers", "SWEEPS", "TOLERANCE", "MIN_MOMENT_ARM"]
+__all__ = ["scale_generic", "compare_models", "compare_run", "table", "worst", "generic_virtual_markers", "SWEEPS", "TOLERANCE", "MIN_MOMENT_ARM"]
 
 #: generic coordinate base name -> (first, last) degrees of the sweep
 SWEEPS = {"hip_flexion": (-20.0, 60.0), "knee_angle": (0.0, -90.0), "ankle_angle": (-20.0, 20.0)}
@@ -214,3 +214,12 @@ def table(result: dict) -> str:
                  + " ".join(f"{100 * result['fractions'][c]:>10.0f} %" for c in cols))
     lines.append(f"{'muscles':14s} " + " ".join(f"{result['counts'][c]:>12d}" for c in cols))
     return "\n".join(lines)
+
+
+def worst(result: dict, k: int = 5) -> dict:
+    """The `k` muscles farthest from the reference per measure: measure -> [(muscle, error), ...] (largest first)."""
+    out = {}
+    for key in ("length", *SWEEPS):
+        v = sorted(((m, r[key]) for m, r in result["muscles"].items() if r[key] is not None), key=lambda x: -x[1])
+        out[key] = v[:k]
+    return out
