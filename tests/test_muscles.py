@@ -57,4 +57,10 @@ def test_pipeline_muscles_match_scaled_gait2392(shared_data, opensim, tmp_path):
     f = res["fractions"]
     assert res["counts"]["length"] == 43
     assert f["hip_flexion"] >= 0.75
-    assert f["length"] >= 0.6
+    assert f["length"] >= 0.68
+    assert f["knee_angle"] >= 0.5
+    assert f["ankle_angle"] >= 0.4
+    rep = __import__("json").loads((model / "muscles.json").read_text(encoding="utf-8"))
+    tib = rep["bodies"]["tibia_r"]
+    assert tib["twist"] is not None and abs(tib["twist"]["deg_between_joints"]) > 10.0   # ICL's tibial torsion
+    assert tib["landmark_residual_mm"]["TTB"] < 10.0
