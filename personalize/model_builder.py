@@ -501,11 +501,13 @@ def model_credits(pm: PersonalModel, mesh_files: dict | None = None) -> str:
     return text
 
 
-def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = None) -> Path:
+def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = None, extend=None) -> Path:
     """Export to OpenSim (``kinematics.io.opensim_io.to_opensim``) with the bone meshes attached to their bodies.
 
     mesh_files : bone -> `MeshFile` (`write_meshes`); the model states its units (``length_units`` meters,
     ``force_units`` N) and, in ``credits``, its source, frames and the meshes' decimation (`model_credits`).
+    extend : callable(opensim.Model) run on the finalised model before it is written (the muscles,
+        `personalize.muscles.personalise_muscles`), or None
     """
     import os
 
@@ -524,6 +526,8 @@ def save_model_osim(pm: PersonalModel, path: Path, mesh_files: dict | None = Non
     om.set_force_units("N")
     om.set_credits(model_credits(pm, mesh_files))
     om.finalizeConnections()
+    if extend is not None:
+        extend(om)
     with atomic_path(path) as tmp:
         if not om.printToXML(os.fspath(tmp)):
             raise InputError(path, "OpenSim could not write the model")

@@ -10,6 +10,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 # the paper-reproduction experiments live in benchmarks/ (research code, not the library)
 sys.path.insert(0, str(REPO / "benchmarks"))
+# gait2392's muscles add ~25 s to each pipeline run: off unless a test asks for them (muscles="gait2392")
+os.environ.setdefault("PERSONALIZE_MUSCLES", "none")
 SHARED_DATA = Path(os.environ.get("PERSONALIZE_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 

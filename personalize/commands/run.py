@@ -5,7 +5,7 @@ SUBJECT_DIR holds ``labels.nii.gz`` (+ ``label_map.json``) or ``bones/``,
 the hip centres), ``subject.json`` and, for a marker set other than a preset the
 labels fit, ``markers.json`` (or ``--marker-set FILE|PRESET``); the folder `personalize phantom`
 writes is itself a valid SUBJECT_DIR.  Writes model.osim, model.json,
-meshes/ (at most 20,000 faces per bone unless --full-meshes), landmarks.json, joints.json,
+meshes/ (at most 20,000 faces per bone unless --full-meshes), muscles.json (``--muscles``), landmarks.json, joints.json,
 kinematics/<trial>.mot (+ marker errors, TRC and IK setup; trials with force plates: ground reactions,
 ID and static-optimisation setups, reserve_actuators.xml), report.html and summary.json; when the subject is refused, only
 report.html stating the error (exit code 2 with a one-line message).  --out is
@@ -33,6 +33,12 @@ def register(app: typer.Typer) -> None:
                                        "default: the preset the static trial's labels fit."),
         full_meshes: bool = typer.Option(False, "--full-meshes", help="Write the bone meshes at full resolution "
                                          "(default: each decimated to at most 20,000 faces, its error in model.json)."),
+        muscles: str = typer.Option(None, "--muscles", help="none or gait2392: gait2392's 86 leg muscles carried onto "
+                                    "the subject's bones (default: gait2392 when the generic model is found and the "
+                                    "bones allow it)."),
+        gait2392: Path = typer.Option(None, "--gait2392", help="The generic gait2392_thelen2003muscle.osim (with its "
+                                      "Geometry/ folder) of opensim-models; default: $PERSONALIZE_GAIT2392, else the "
+                                      "shared data folder."),
     ) -> None:
         """Personalised model from MRI and motion capture: fused joints, model.osim, IK of every trial, report."""
         from rich.console import Console
@@ -43,7 +49,8 @@ def register(app: typer.Typer) -> None:
         console = Console(stderr=True, quiet=quiet)
         with StepProgress("run", expected_steps(subject_dir), console) as prog:
             summary = run_subject(subject_dir, out, report=report, progress=prog, overwrite=overwrite,
-                                  marker_set=marker_set, full_meshes=full_meshes)
+                                  marker_set=marker_set, full_meshes=full_meshes, muscles=muscles,
+                                  gait2392=gait2392)
         if not quiet:
             _print_summary(summary, out, Console())
 

@@ -183,7 +183,10 @@ def ensure_realistic_subject(subject_dir: str | os.PathLike, progress: Callable[
 
 def realistic_validation_job(subject_dir: Path, out: Path, progress: Callable[[str], None] | None = None, *,
                              job: str = DEFAULT_JOB) -> dict:
-    """Dask task body: materialise the realistic subject, then run `job` on it."""
+    """Dask task body: materialise the realistic subject, then run `job` on it (without gait2392's muscles unless
+    ``$PERSONALIZE_MUSCLES`` asks for them: the validation measures joints and kinematics, and the muscles would add
+    about 25 s per subject)."""
+    os.environ.setdefault("PERSONALIZE_MUSCLES", "none")
     ensure_realistic_subject(subject_dir, progress=progress)
     return resolve_job(job)(Path(subject_dir), out, progress=progress)
 

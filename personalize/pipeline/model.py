@@ -9,7 +9,7 @@ from .inputs import SubjectInputs
 from .joint_estimates import JointEstimates
 from .marker_assignment import MarkerAssignment
 
-__all__ = ["subject_parameters", "bone_meshes_lab", "segment_placements", "joints_on_bones", "pelvis_bone_frame"]
+__all__ = ["subject_parameters", "bone_meshes_lab", "bone_landmarks_lab", "segment_placements", "joints_on_bones", "pelvis_bone_frame"]
 
 
 def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict,
@@ -131,6 +131,22 @@ def bone_meshes_lab(surfaces: dict, placements: dict, sides) -> dict:
         m = surf.mesh.copy()
         m.apply_transform(placements[seg_of[bone][0]])
         out[bone] = (m, seg_of[bone][1])
+    return out
+
+
+def bone_landmarks_lab(landmarks, placements: dict, sides) -> dict:
+    """Bone landmarks moved into the static lab frame as `bone_meshes_lab` moves the meshes: bone -> ({name: (3,)
+    m}, body).  landmarks : `personalize.landmarks.LandmarkSet` (scanner frame); the points are
+    `personalize.muscles.generic.anatomical_points` (the landmarks and the points the bone's axes define)."""
+    from ..muscles.generic import anatomical_points
+
+    seg_of = _bone_segments(sides)
+    out = {}
+    for bone, res in landmarks.bones.items():
+        if bone not in seg_of or seg_of[bone][0] not in placements or not res.landmarks:
+            continue
+        T = placements[seg_of[bone][0]]
+        out[bone] = ({n: T[:3, :3] @ x + T[:3, 3] for n, x in anatomical_points(res).items()}, seg_of[bone][1])
     return out
 
 

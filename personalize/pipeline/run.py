@@ -1,6 +1,8 @@
 """`run_subject`: the whole pipeline on one subject folder, stage by stage (see `personalize.pipeline`)."""
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable
@@ -13,12 +15,15 @@ from .joints import estimate_joints, gate_registrations, pelvis_skin
 from .model_checks import prior_tissue
 from .summary import SubjectSummary, write_summary
 
-__all__ = ["run_subject", "read_subject_bones", "build_model"]
+__all__ = ["run_subject", "read_subject_bones", "build_model", "MUSCLES_ENV"]
+
+#: environment variable giving `run_subject`'s default ``muscles`` (``none`` or ``gait2392``)
+MUSCLES_ENV = "PERSONALIZE_MUSCLES"
 
 
 def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[[str], None] | None = None,
                 report: bool = True, overwrite: bool = False, marker_set=None, model_check: bool = True,
-                full_meshes: bool = False) -> dict:
+                full_meshes: bool = False, muscles: str | None = None, gait2392=None) -> dict:
     """Run the whole pipeline on one subject folder; outputs are staged into `out`.
 
     Parameters
@@ -34,6 +39,10 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
         need the estimates of every subject whatever the publication gate decides)
     full_meshes : write the bone meshes at the surfaces' full resolution (default: each decimated to at most
         `personalize.model_builder.MODEL_MESH_MAX_FACES` faces, the error stated in model.json)
+    muscles : "none", "gait2392" (gait2392's leg muscles on the subject's bones, `personalize.muscles`; the
+        generic model must be found) or None: ``$PERSONALIZE_MUSCLES`` when set, else gait2392 when the generic
+        model is found and every side has its pelvis, femur and tibia (``muscles.json`` reports the registration and the re-estimated lengths)
+    gait2392 : the generic gait2392 model file (None: `personalize.muscles.generic.generic_model_path`'s search)
 
     Returns
     -------
@@ -52,7 +61,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     check_output_dir(out, inputs=[subject_dir], overwrite=overwrite)
     try:
         return _run_subject(subject_dir, out, progress=progress, report=report, marker_set=marker_set,
-                            model_check=model_check, full_meshes=full_meshes)
+                            model_check=model_check, full_meshes=full_meshes, muscles=muscles, gait2392=gait2392)
     except (InputError, FitError) as exc:
         if report:
             write_refusal_report(Path(out), subject_dir, exc)
@@ -73,7 +82,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
 
 
 def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker_set=None,
-                 model_check: bool = True, full_meshes: bool = False) -> dict:
+                 model_check: bool = True, full_meshes: bool = False, muscles: str | None = None,
+                 gait2392=None) -> dict:
     """`run_subject` without the refusal report."""
     from ..bone_set import write_bone_files
     from ..evaluation.truth import chain_angle_errors, compare_with_truth, truth_in_static_lab
@@ -81,7 +91,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     from ..outputs import replaced_dir
     from ..parameter_fusion import fuse_segment_lengths
     from .marker_assignment import model_markers
-    from .model import bone_meshes_lab, joints_on_bones, pelvis_bone_frame, segment_placements
+    from .model import bone_landmarks_lab, bone_meshes_lab, joints_on_bones, pelvis_bone_frame, segment_placements
     from .model_checks import bone_segment_lengths, check_model
     from .dynamics_setups import write_dynamics_setups
     from .trials import chain_blend, solve_trials
@@ -130,13 +140,21 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
                     {**prior_tissue(est, ms, [m.name for m in pm.model.markers]), **(skin or {})},
                     bone_segment_lengths(joints, inputs.sides), bony)
     truth = truth_in_static_lab(inputs)
+    add_muscles, muscle_report = _muscle_step(muscles, gait2392, pm, meshes_lab, inputs.sides, notes=summary.notes,
+                                              landmarks_lab=bone_landmarks_lab(bones.landmarks, placements, inputs.sides))
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)
         say("writing meshes and model")
         mesh_files = write_meshes(pm, meshes_lab, inside(stage, "meshes"),
                                   max_faces=None if full_meshes else MODEL_MESH_MAX_FACES, source=str(inputs.bones))
         save_model_json(pm, inside(stage, "model.json"), mesh_files)
-        save_model_osim(pm, inside(stage, "model.osim"), mesh_files)
+        if add_muscles is not None:
+            say("muscles: gait2392 onto the subject's bones")
+        save_model_osim(pm, inside(stage, "model.osim"), mesh_files, extend=add_muscles)
+        if muscle_report:
+            from lowerlimb.atomic import write_text
+
+            write_text(inside(stage, "muscles.json"), json.dumps(muscle_report, indent=1) + "\n")
         ik, summary.ik = solve_trials(pm, inputs, stage, say, summary.notes)
         summary.dynamics_setups = write_dynamics_setups(pm, inputs, stage, ik, say, summary.notes)
         summary.chain_blend, chains = chain_blend(inputs, stage, summary.notes)
@@ -151,6 +169,43 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
             write_subject_report(inside(stage, "report.html"), summary, ik, bones)
         write_summary(inside(stage, "summary.json"), summary)
     return summary.to_json()
+
+
+def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, notes: list, landmarks_lab=None):
+    """(callable(opensim.Model) adding the muscles or None, the report dict it fills).
+
+    meshes_lab : `model.bone_meshes_lab`; landmarks_lab : `model.bone_landmarks_lab` (the registration's
+    anatomical correspondences) or None
+
+    Raises
+    ------
+    InputError : ``muscles`` not one of none / gait2392, or gait2392 asked for and the generic model not found
+    """
+    from ..muscles import MUSCLE_CHOICES, personalise_muscles, subject_body_landmarks, subject_body_meshes
+    from ..muscles.generic import generic_model_path
+
+    if muscles is None:
+        muscles = os.environ.get(MUSCLES_ENV) or None
+    if muscles is not None and muscles not in MUSCLE_CHOICES:
+        raise InputError("--muscles", f"{muscles!r} is not one of {', '.join(MUSCLE_CHOICES)}")
+    if muscles == "none":
+        return None, {}
+    path = generic_model_path(gait2392, required=muscles == "gait2392")
+    body_meshes = subject_body_meshes(meshes_lab, pm.body_frames)
+    body_landmarks = subject_body_landmarks(landmarks_lab or {}, pm.body_frames)
+    missing = [b for s in sides for b in ("pelvis", f"femur_{s}", f"tibia_{s}") if b not in body_meshes]
+    if path is None or missing:
+        if muscles == "gait2392":
+            raise InputError("--muscles", f"gait2392's muscles need the bones {', '.join(missing)}")
+        notes.append("no muscles: " + ("the generic gait2392 model was not found (--gait2392 FILE)" if path is None
+                                       else f"bones {', '.join(missing)} missing"))
+        return None, {}
+    report: dict = {}
+
+    def add(om):
+        report.update(personalise_muscles(om, body_meshes, tuple(sides), path, subject_landmarks=body_landmarks))
+
+    return add, report
 
 
 def read_subject_bones(inputs: SubjectInputs, volume, say) -> tuple[SubjectInputs, object]:

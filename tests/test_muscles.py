@@ -1,0 +1,66 @@
+"""gait2392's muscles on the subject's bones (issue M1): the pieces on their own, and the pipeline's model against
+gait2392 scaled to the same subject by OpenSim's ScaleTool."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+
+def test_umeyama_recovers_a_similarity():
+    from scipy.spatial.transform import Rotation
+
+    from personalize.muscles.bone_registration import umeyama
+
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(50, 3))
+    R = Rotation.from_rotvec([0.2, -0.5, 0.3]).as_matrix()
+    Q = 1.3 * P @ R.T + [0.1, -0.2, 0.3]
+    s, Rf, t = umeyama(P, Q)
+    assert s == pytest.approx(1.3) and np.allclose(Rf, R) and np.allclose(t, [0.1, -0.2, 0.3])
+
+
+def test_bone_registration_finds_a_scaled_turned_bone(shared_data):
+    """The generic femur, scaled 1.1, turned 10 deg about its long axis and moved, is found again from its joints."""
+    from scipy.spatial.transform import Rotation
+
+    from personalize.muscles.bone_registration import register_bone, similarity_from_joints
+    from personalize.muscles.generic import load_generic_model
+
+    g = load_generic_model(shared_data / "opensim_gait2392" / "gait2392_thelen2003muscle.osim")
+    A = 1.1 * Rotation.from_rotvec([0.0, np.radians(10.0), 0.0]).as_matrix()
+    t = np.array([0.01, 0.44, -0.02])
+    subject = g.meshes["femur_r"].copy()
+    subject.vertices = np.asarray(subject.vertices) @ A.T + t
+    gj = g.joint_points["femur_r"]
+    sj = {k: A @ v + t for k, v in gj.items()}
+    m = register_bone("femur_r", g.meshes["femur_r"], subject, similarity_from_joints(gj, sj),
+                      [(gj[k], sj[k]) for k in gj])
+    x = np.asarray(g.meshes["femur_r"].vertices)
+    assert np.abs(m(x) - (x @ A.T + t)).max() < 2e-3
+    assert m.distances_mm[m.kind] < 1.0
+
+
+def test_pipeline_muscles_match_scaled_gait2392(shared_data, opensim, tmp_path):
+    """The ICL-MRI phantom's model: OpenSim loads its 86 muscles; MTU lengths and hip, knee, ankle moment arms
+    against gait2392 scaled by OpenSim's ScaleTool (fractions within 15 % printed; asserted at the levels this
+    first version reaches, see benchmarks/muscles.py)."""
+    from muscles import build
+
+    from personalize.muscles.compare import compare_run, table
+
+    subject, model = build(tmp_path)
+    m = opensim.Model(str(model / "model.osim"))
+    m.initSystem()
+    assert m.getMuscles().getSize() == 86
+    res = compare_run(model, subject, tmp_path / "scale", n=5)
+    print(table(res))
+    f = res["fractions"]
+    assert res["counts"]["length"] == 43
+    assert f["hip_flexion"] >= 0.75
+    assert f["length"] >= 0.68
+    assert f["knee_angle"] >= 0.5
+    assert f["ankle_angle"] >= 0.4
+    rep = __import__("json").loads((model / "muscles.json").read_text(encoding="utf-8"))
+    tib = rep["bodies"]["tibia_r"]
+    assert tib["twist"] is not None and abs(tib["twist"]["deg_between_joints"]) > 10.0   # ICL's tibial torsion
+    assert tib["landmark_residual_mm"]["TTB"] < 10.0
