@@ -64,3 +64,24 @@ def test_pipeline_muscles_match_scaled_gait2392(shared_data, opensim, tmp_path):
     tib = rep["bodies"]["tibia_r"]
     assert tib["twist"] is not None and abs(tib["twist"]["deg_between_joints"]) > 10.0   # ICL's tibial torsion
     assert tib["landmark_residual_mm"]["TTB"] < 10.0
+
+
+def test_default_muscles_that_fail_leave_the_model_without_them(shared_data, opensim, monkeypatch, tmp_path):
+    """By default the muscles are an addition: when carrying them fails the model is still written, without
+    them, with a note (asked for, ``muscles="gait2392"``, the failure stops the run: `_run_subject`)."""
+    import personalize.muscles as muscles_pkg
+    from personalize.evaluation.phantom_subject import write_phantom_subject
+    from personalize.pipeline import run_subject
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("registration diverged")
+
+    subj = write_phantom_subject(tmp_path / "subject", seed=5, voxel_mm=2.0)
+    monkeypatch.delenv("PERSONALIZE_MUSCLES", raising=False)
+    monkeypatch.setattr(muscles_pkg, "personalise_muscles", fail)
+    summary = run_subject(subj, tmp_path / "out", report=False)
+    assert any("no muscles" in n and "registration diverged" in n for n in summary["notes"])
+    assert not (tmp_path / "out" / "muscles.json").exists()
+    m = opensim.Model(str(tmp_path / "out" / "model.osim"))
+    m.initSystem()
+    assert m.getMuscles().getSize() == 0 and m.getBodySet().getSize() > 5

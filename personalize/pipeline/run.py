@@ -140,8 +140,9 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
                     {**prior_tissue(est, ms, [m.name for m in pm.model.markers]), **(skin or {})},
                     bone_segment_lengths(joints, inputs.sides), bony)
     truth = truth_in_static_lab(inputs)
-    add_muscles, muscle_report = _muscle_step(muscles, gait2392, pm, meshes_lab, inputs.sides, notes=summary.notes,
-                                              landmarks_lab=bone_landmarks_lab(bones.landmarks, placements, inputs.sides))
+    add_muscles, muscle_report, muscles_asked = _muscle_step(
+        muscles, gait2392, pm, meshes_lab, inputs.sides, notes=summary.notes,
+        landmarks_lab=bone_landmarks_lab(bones.landmarks, placements, inputs.sides))
     with replaced_dir(out) as stage:
         write_bone_files(stage, bones, fits=False)
         say("writing meshes and model")
@@ -150,7 +151,16 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
         save_model_json(pm, inside(stage, "model.json"), mesh_files)
         if add_muscles is not None:
             say("muscles: gait2392 onto the subject's bones")
-        save_model_osim(pm, inside(stage, "model.osim"), mesh_files, extend=add_muscles)
+        try:
+            save_model_osim(pm, inside(stage, "model.osim"), mesh_files, extend=add_muscles)
+        except Exception as exc:    # noqa: BLE001 - the default muscles are an addition: the model goes without them
+            if add_muscles is None or muscles_asked:
+                raise
+            say(f"warning: no muscles ({type(exc).__name__}: {exc})")
+            summary.notes.append(f"no muscles: carrying gait2392's muscles onto these bones failed "
+                                 f"({type(exc).__name__}: {exc}); the model is written without them")
+            muscle_report.clear()
+            save_model_osim(pm, inside(stage, "model.osim"), mesh_files)
         if muscle_report:
             from lowerlimb.atomic import write_text
 
@@ -172,7 +182,10 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
 
 
 def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, notes: list, landmarks_lab=None):
-    """(callable(opensim.Model) adding the muscles or None, the report dict it fills).
+    """(callable(opensim.Model) adding the muscles or None, the report dict it fills, whether they were asked for).
+
+    Muscles asked for (``gait2392`` given or in ``$PERSONALIZE_MUSCLES``) that cannot be added stop the run; the
+    default ones are left out with a note (`_run_subject`).
 
     meshes_lab : `model.bone_meshes_lab`; landmarks_lab : `model.bone_landmarks_lab` (the registration's
     anatomical correspondences) or None
@@ -189,7 +202,7 @@ def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, not
     if muscles is not None and muscles not in MUSCLE_CHOICES:
         raise InputError("--muscles", f"{muscles!r} is not one of {', '.join(MUSCLE_CHOICES)}")
     if muscles == "none":
-        return None, {}
+        return None, {}, False
     path = generic_model_path(gait2392, required=muscles == "gait2392")
     body_meshes = subject_body_meshes(meshes_lab, pm.body_frames)
     body_landmarks = subject_body_landmarks(landmarks_lab or {}, pm.body_frames)
@@ -199,13 +212,13 @@ def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, not
             raise InputError("--muscles", f"gait2392's muscles need the bones {', '.join(missing)}")
         notes.append("no muscles: " + ("the generic gait2392 model was not found (--gait2392 FILE)" if path is None
                                        else f"bones {', '.join(missing)} missing"))
-        return None, {}
+        return None, {}, False
     report: dict = {}
 
     def add(om):
         report.update(personalise_muscles(om, body_meshes, tuple(sides), path, subject_landmarks=body_landmarks))
 
-    return add, report
+    return add, report, muscles == "gait2392"
 
 
 def read_subject_bones(inputs: SubjectInputs, volume, say) -> tuple[SubjectInputs, object]:
