@@ -85,3 +85,22 @@ def test_default_muscles_that_fail_leave_the_model_without_them(shared_data, ope
     m = opensim.Model(str(tmp_path / "out" / "model.osim"))
     m.initSystem()
     assert m.getMuscles().getSize() == 0 and m.getBodySet().getSize() > 5
+
+
+@pytest.mark.parametrize("args, env, named", [(["--muscles", "foo"], None, "--muscles"),
+                                               (["--gait2392", "missing.osim"], None, "missing.osim"),
+                                               ([], "maybe", "PERSONALIZE_MUSCLES")])
+def test_bad_muscle_options_are_refused_before_any_work(tmp_path, monkeypatch, capsys, args, env, named):
+    """A bad --muscles, a missing --gait2392 file or a bad $PERSONALIZE_MUSCLES: one line naming it, exit 2,
+    nothing written (checked before the subject is read)."""
+    from personalize.cli import main
+
+    (tmp_path / "subject").mkdir()
+    if env is None:
+        monkeypatch.delenv("PERSONALIZE_MUSCLES", raising=False)
+    else:
+        monkeypatch.setenv("PERSONALIZE_MUSCLES", env)
+    assert main(["run", str(tmp_path / "subject"), "--out", str(tmp_path / "o"), "-q", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert named in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "o").exists()

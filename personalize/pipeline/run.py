@@ -59,6 +59,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     from ..presentation.subject_report import write_refusal_report
 
     check_output_dir(out, inputs=[subject_dir], overwrite=overwrite)
+    _check_muscle_options(muscles, gait2392)
     try:
         return _run_subject(subject_dir, out, progress=progress, report=report, marker_set=marker_set,
                             model_check=model_check, full_meshes=full_meshes, muscles=muscles, gait2392=gait2392)
@@ -179,6 +180,18 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
             write_subject_report(inside(stage, "report.html"), summary, ik, bones)
         write_summary(inside(stage, "summary.json"), summary)
     return summary.to_json()
+
+
+def _check_muscle_options(muscles: str | None, gait2392) -> None:
+    """Refuse a bad ``muscles`` choice or a missing ``gait2392`` file before any work (InputError)."""
+    from ..muscles import MUSCLE_CHOICES
+
+    choice = muscles if muscles is not None else os.environ.get(MUSCLES_ENV) or None
+    if choice is not None and choice not in MUSCLE_CHOICES:
+        raise InputError("--muscles" if muscles is not None else MUSCLES_ENV,
+                         f"{choice!r} is not one of {', '.join(MUSCLE_CHOICES)}")
+    if gait2392 is not None and choice != "none" and not Path(gait2392).is_file():
+        raise InputError(gait2392, "the generic gait2392 model (.osim) is not there")
 
 
 def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, notes: list, landmarks_lab=None):
