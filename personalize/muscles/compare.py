@@ -15,7 +15,8 @@ by the `poses.CoordinateMap` (the same anatomical posture).  Per muscle:
 
 * MTU length error: ``max_q |L_p(q) - L_s(q)| / L_s(q)`` over every pose of the three sweeps (p: personalised,
   s: scaled gait2392);
-* moment arm about the swept coordinate, ``r = -dL/dq`` (central differences, ``h = 1e-3 rad``; the
+* moment arm about the swept coordinate, ``r = -dL/dq`` (central differences, ``h = 1e-3 rad``, one-sided beside
+  a conditional path point's switch, `_moment_arms`; the
   personalised model's about the same generic coordinate, so signs compare): the normalised RMS error
   ``sqrt(mean (r_p - r_s)²) / sqrt(mean r_s²)``, for the muscles whose scaled moment arm about that coordinate
   reaches `MIN_MOMENT_ARM` somewhere in the sweep (the muscles that cross the joint).
@@ -138,6 +139,22 @@ def _sweep_poses(side: str, n: int) -> list[tuple[str, float]]:
     return [(f"{c}_{side}", np.radians(a + (b - a) * v)) for c, (a, b) in SWEEPS.items() for v in u]
 
 
+#: m, one-sided moment arms further apart than this straddle a jump of the path (a conditional path point switching
+#: between q - h and q + h); a smooth path's differ by about 2 h |d²L/dq²|, under 0.1 mm
+_JUMP = 0.005
+
+
+def _moment_arms(L: np.ndarray) -> np.ndarray:
+    """Moment arms ``-dL/dq`` from rows (q, q - h, q + h) of MTU lengths (n_poses x 3, n_muscles): the central
+    difference, or the one-sided difference of smaller magnitude where the two sides disagree by more than
+    `_JUMP` (the other side spans a conditional path point's switch, where the length jumps)."""
+    L0, Lm, Lp = L[0::3], L[1::3], L[2::3]
+    left, right = -(L0 - Lm) / _H, -(Lp - L0) / _H
+    central = 0.5 * (left + right)
+    jump = np.abs(right - left) > _JUMP
+    return np.where(jump, np.where(np.abs(left) < np.abs(right), left, right), central)
+
+
 def compare_models(personal, scaled, cmap, muscles, sides=("r",), n: int = 9) -> dict:
     """Per-muscle errors of the personalised model against the scaled gait2392 (module docstring).
 
@@ -157,7 +174,7 @@ def compare_models(personal, scaled, cmap, muscles, sides=("r",), n: int = 9) ->
         Ls = mtu_lengths(scaled, mus, gposes)
         Lp = mtu_lengths(personal, mus, [cmap.subject_pose(p) for p in gposes])
         Ls0, Lp0 = Ls[0::3], Lp[0::3]
-        rs, rp = -(Ls[2::3] - Ls[1::3]) / (2 * _H), -(Lp[2::3] - Lp[1::3]) / (2 * _H)
+        rs, rp = _moment_arms(Ls), _moment_arms(Lp)
         names = np.array([c for c, _ in plan])
         for k, m in enumerate(mus):
             row = {"length": float(np.max(np.abs(Lp0[:, k] - Ls0[:, k]) / Ls0[:, k]))}
