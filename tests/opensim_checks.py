@@ -28,7 +28,7 @@ def check_so_reproduces_id(model_json: dict, id_table, so_table) -> dict:
         for i, c in enumerate(law["independent"]):
             coupled[c] = [(d, C[j, i]) for j, d in enumerate(law["dependent"])]
     diffs = {}
-    actuators = [c for c in so_table.columns if c.startswith(("reserve_", "residual_"))]
+    actuators = [c for c in so_table.columns if c.startswith(("reserve_", "residual_", "reaction_"))]
     assert actuators
     for a in actuators:
         c = a.split("_", 1)[1]

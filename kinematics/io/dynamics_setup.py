@@ -11,7 +11,11 @@ Reserve actuators (`write_reserve_actuators`): one ``CoordinateActuator`` on eve
 controls unbounded.  With one actuator per free coordinate and nothing else, the static optimisation's
 acceleration constraints have a unique solution: the actuators' forces are the inverse-dynamics generalised forces.
 With muscles added to the model, the same file gives the usual weak reserves (optimal force 1 N m: a reserve
-moment of M N m costs M² in the activation objective).
+moment of M N m costs M² in the activation objective).  The ``reactions`` coordinates (the personalised model's
+knee ab/adduction and axial rotation: moments that contact and ligaments carry, which gait2392's muscles, made for
+a one-degree-of-freedom knee, are not meant to balance) get ``reaction_<coordinate>`` actuators as strong as the
+residuals, so the optimisation leaves those moments to them as a one-degree-of-freedom knee leaves them to its
+joint reaction.
 """
 from __future__ import annotations
 
@@ -21,12 +25,14 @@ from pathlib import Path
 from lowerlimb.errors import InputError
 
 __all__ = ["write_id_setup", "write_so_setup", "write_reserve_actuators", "free_coordinates", "run_setup",
-           "RESERVE_OPTIMAL_FORCE", "RESIDUAL_OPTIMAL_FORCE"]
+           "RESERVE_OPTIMAL_FORCE", "RESIDUAL_OPTIMAL_FORCE", "REACTION_OPTIMAL_FORCE"]
 
 #: optimal force of the reserve actuators on the joints (N m per unit control, or N for a translation)
 RESERVE_OPTIMAL_FORCE = 1.0
 #: optimal force of the residual actuators on the pelvis (N or N m per unit control)
 RESIDUAL_OPTIMAL_FORCE = 1.0
+#: optimal force of the joint-reaction actuators (N m per unit control): strong, so that they cost little
+REACTION_OPTIMAL_FORCE = 1000.0
 
 
 def _print(obj, path: Path, comment: str, what: str) -> Path:
@@ -73,8 +79,12 @@ def free_coordinates(model_file: str | os.PathLike) -> list[tuple[str, str, bool
 
 def write_reserve_actuators(path: str | os.PathLike, model_file: str | os.PathLike, *,
                             reserve_optimal_force: float = RESERVE_OPTIMAL_FORCE,
-                            residual_optimal_force: float = RESIDUAL_OPTIMAL_FORCE) -> tuple[Path, list[str]]:
+                            residual_optimal_force: float = RESIDUAL_OPTIMAL_FORCE,
+                            reactions=(), reaction_optimal_force: float = REACTION_OPTIMAL_FORCE) -> tuple[Path, list[str]]:
     """Write a ``ForceSet`` of CoordinateActuators on every free coordinate of `model_file` (module docstring).
+
+    reactions : coordinate names whose actuator is a joint reaction (``reaction_<coordinate>``, optimal force
+        `reaction_optimal_force`) rather than a weak reserve
 
     Returns (path, actuator names).
     """
@@ -86,15 +96,18 @@ def write_reserve_actuators(path: str | os.PathLike, model_file: str | os.PathLi
     names = []
     for c, kind, on_ground in free_coordinates(model_file):
         a = osim.CoordinateActuator(c)
-        a.setName(f"{'residual' if on_ground else 'reserve'}_{c}")
-        a.setOptimalForce(float(residual_optimal_force if on_ground else reserve_optimal_force))
+        kind_name = "residual" if on_ground else "reaction" if c in reactions else "reserve"
+        a.setName(f"{kind_name}_{c}")
+        a.setOptimalForce(float({"residual": residual_optimal_force, "reaction": reaction_optimal_force,
+                                 "reserve": reserve_optimal_force}[kind_name]))
         a.setMinControl(-float("inf"))
         a.setMaxControl(float("inf"))
         fs.cloneAndAppend(a)
         names.append(a.getName())
     unit = "N m (rotational) or N (translational)"
     comment = (f"Reserve and residual actuators of {Path(model_file).name}: one CoordinateActuator per free "
-               f"coordinate (residual_* on the ground-pelvis joint, reserve_* on the others); force = control x "
+               f"coordinate (residual_* on the ground-pelvis joint, reaction_* on the knee's ab/adduction and rotation, "
+               f"reserve_* on the others); force = control x "
                f"optimal_force, {unit} in the coordinate's direction; controls unbounded.")
     return _print(fs, Path(path), comment, "actuator set"), names
 

@@ -35,6 +35,8 @@ DYNAMICS_CUTOFF_HZ = 6.0
 MIN_WINDOW_FRAMES = 10
 #: the actuator set of the static optimisations, beside model.osim
 RESERVE_ACTUATORS = "reserve_actuators.xml"
+#: the knee's secondary rotations: their moments go to joint-reaction actuators in the static optimisation
+KNEE_REACTIONS = tuple(f"knee_{c}_{s}" for c in ("adduction", "rotation") for s in "rl")
 
 
 def known_load_window(time: np.ndarray, exclude, load_time: np.ndarray) -> tuple[float, float] | None:
@@ -100,7 +102,8 @@ def write_dynamics_setups(pm, inputs, stage: Path, ik: dict, say, notes: list) -
             continue
         say(f"dynamics set-ups {name}")
         if not out:
-            write_reserve_actuators(inside(stage, RESERVE_ACTUATORS), inside(stage, "model.osim"))
+            write_reserve_actuators(inside(stage, RESERVE_ACTUATORS), inside(stage, "model.osim"),
+                                    reactions=KNEE_REACTIONS)
         write_external_loads(kin, f"{name}_grf", tl.loads,
                              frame="the model's ground (X the static pose's facing, Y up, Z right; lab origin)")
         common = dict(model_file="../model.osim", coordinates_file=f"{name}.mot",
