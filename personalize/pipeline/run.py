@@ -59,7 +59,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     from ..presentation.subject_report import write_refusal_report
 
     check_output_dir(out, inputs=[subject_dir], overwrite=overwrite)
-    _check_muscle_options(muscles, gait2392)
+    muscles = _checked_muscles(muscles, gait2392)
     try:
         return _run_subject(subject_dir, out, progress=progress, report=report, marker_set=marker_set,
                             model_check=model_check, full_meshes=full_meshes, muscles=muscles, gait2392=gait2392)
@@ -182,8 +182,9 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     return summary.to_json()
 
 
-def _check_muscle_options(muscles: str | None, gait2392) -> None:
-    """Refuse a bad ``muscles`` choice or a missing ``gait2392`` file before any work (InputError)."""
+def _checked_muscles(muscles: str | None, gait2392) -> str | None:
+    """The ``muscles`` choice (``$PERSONALIZE_MUSCLES`` when not given; None: the default), refusing a bad one or a
+    missing ``gait2392`` file before any work (InputError)."""
     from ..muscles import MUSCLE_CHOICES
 
     choice = muscles if muscles is not None else os.environ.get(MUSCLES_ENV) or None
@@ -192,6 +193,7 @@ def _check_muscle_options(muscles: str | None, gait2392) -> None:
                          f"{choice!r} is not one of {', '.join(MUSCLE_CHOICES)}")
     if gait2392 is not None and choice != "none" and not Path(gait2392).is_file():
         raise InputError(gait2392, "the generic gait2392 model (.osim) is not there")
+    return choice
 
 
 def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, notes: list, landmarks_lab=None):
@@ -200,20 +202,16 @@ def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, not
     Muscles asked for (``gait2392`` given or in ``$PERSONALIZE_MUSCLES``) that cannot be added stop the run; the
     default ones are left out with a note (`_run_subject`).
 
-    meshes_lab : `model.bone_meshes_lab`; landmarks_lab : `model.bone_landmarks_lab` (the registration's
-    anatomical correspondences) or None
+    muscles : the choice `_checked_muscles` returned; meshes_lab : `model.bone_meshes_lab`; landmarks_lab :
+    `model.bone_landmarks_lab` (the registration's anatomical correspondences) or None
 
     Raises
     ------
-    InputError : ``muscles`` not one of none / gait2392, or gait2392 asked for and the generic model not found
+    InputError : gait2392 asked for and the generic model or the bones it needs not found
     """
-    from ..muscles import MUSCLE_CHOICES, personalise_muscles, subject_body_landmarks, subject_body_meshes
+    from ..muscles import personalise_muscles, subject_body_landmarks, subject_body_meshes
     from ..muscles.generic import generic_model_path
 
-    if muscles is None:
-        muscles = os.environ.get(MUSCLES_ENV) or None
-    if muscles is not None and muscles not in MUSCLE_CHOICES:
-        raise InputError("--muscles", f"{muscles!r} is not one of {', '.join(MUSCLE_CHOICES)}")
     if muscles == "none":
         return None, {}, False
     path = generic_model_path(gait2392, required=muscles == "gait2392")
