@@ -186,7 +186,9 @@ def realistic_validation_job(subject_dir: Path, out: Path, progress: Callable[[s
     """Dask task body: materialise the realistic subject, then run `job` on it (without gait2392's muscles unless
     ``$PERSONALIZE_MUSCLES`` asks for them: the validation measures joints and kinematics, and the muscles would add
     about 25 s per subject)."""
-    os.environ.setdefault("PERSONALIZE_MUSCLES", "none")
+    from personalize.pipeline.run import MUSCLES_ENV
+
+    os.environ.setdefault(MUSCLES_ENV, "none")
     ensure_realistic_subject(subject_dir, progress=progress)
     return resolve_job(job)(Path(subject_dir), out, progress=progress)
 

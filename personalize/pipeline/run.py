@@ -41,7 +41,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
         `personalize.model_builder.MODEL_MESH_MAX_FACES` faces, the error stated in model.json)
     muscles : "none", "gait2392" (gait2392's leg muscles on the subject's bones, `personalize.muscles`; the
         generic model must be found) or None: ``$PERSONALIZE_MUSCLES`` when set, else gait2392 when the generic
-        model is found and every side has its pelvis, femur and tibia (``muscles.json`` reports the registration and the re-estimated lengths)
+        model is found and every side has its pelvis, femur and tibia (``muscles.json`` reports the registration
+        and the re-estimated lengths)
     gait2392 : the generic gait2392 model file (None: `personalize.muscles.generic.generic_model_path`'s search)
 
     Returns
@@ -141,7 +142,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
                     {**prior_tissue(est, ms, [m.name for m in pm.model.markers]), **(skin or {})},
                     bone_segment_lengths(joints, inputs.sides), bony)
     truth = truth_in_static_lab(inputs)
-    add_muscles, muscle_report, muscles_asked = _muscle_step(
+    add_muscles, muscle_report = _muscle_step(
         muscles, gait2392, pm, meshes_lab, inputs.sides, notes=summary.notes,
         landmarks_lab=bone_landmarks_lab(bones.landmarks, placements, inputs.sides))
     with replaced_dir(out) as stage:
@@ -155,7 +156,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
         try:
             save_model_osim(pm, inside(stage, "model.osim"), mesh_files, extend=add_muscles)
         except Exception as exc:    # noqa: BLE001 - the default muscles are an addition: the model goes without them
-            if add_muscles is None or muscles_asked:
+            if add_muscles is None or muscles == "gait2392":
                 raise
             say(f"warning: no muscles ({type(exc).__name__}: {exc})")
             summary.notes.append(f"no muscles: carrying gait2392's muscles onto these bones failed "
@@ -197,7 +198,7 @@ def _checked_muscles(muscles: str | None, gait2392) -> str | None:
 
 
 def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, notes: list, landmarks_lab=None):
-    """(callable(opensim.Model) adding the muscles or None, the report dict it fills, whether they were asked for).
+    """(callable(opensim.Model) adding the muscles or None, the report dict it fills).
 
     Muscles asked for (``gait2392`` given or in ``$PERSONALIZE_MUSCLES``) that cannot be added stop the run; the
     default ones are left out with a note (`_run_subject`).
@@ -213,7 +214,7 @@ def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, not
     from ..muscles.generic import generic_model_path
 
     if muscles == "none":
-        return None, {}, False
+        return None, {}
     path = generic_model_path(gait2392, required=muscles == "gait2392")
     body_meshes = subject_body_meshes(meshes_lab, pm.body_frames)
     body_landmarks = subject_body_landmarks(landmarks_lab or {}, pm.body_frames)
@@ -223,13 +224,13 @@ def _muscle_step(muscles: str | None, gait2392, pm, meshes_lab: dict, sides, not
             raise InputError("--muscles", f"gait2392's muscles need the bones {', '.join(missing)}")
         notes.append("no muscles: " + ("the generic gait2392 model was not found (--gait2392 FILE)" if path is None
                                        else f"bones {', '.join(missing)} missing"))
-        return None, {}, False
+        return None, {}
     report: dict = {}
 
     def add(om):
         report.update(personalise_muscles(om, body_meshes, tuple(sides), path, subject_landmarks=body_landmarks))
 
-    return add, report, muscles == "gait2392"
+    return add, report
 
 
 def read_subject_bones(inputs: SubjectInputs, volume, say) -> tuple[SubjectInputs, object]:
