@@ -270,3 +270,42 @@ def test_real_lab_files_detected(shared_data):
     walk = detect_marker_set(read_trc(shared_data / "opensim_gait2392" / "subject01_walk1.trc"))
     assert not walk.fits and set(walk.missing) == {f"{S}.{m}" for S in "RL" for m in ("Knee.Lat", "Knee.Med",
                                                                                        "Ankle.Lat", "Ankle.Med")}
+
+
+def test_davis_hip_moves_forward_with_the_asis_tissue_and_its_sd_says_so():
+    """Plug-in-Gait's Davis centre with obese tissue (ASIS 30 mm, PSIS 40 mm, a 10 deg anteriorly tilted pelvis)
+    against the same pelvis with bare markers: it lies 18-30 mm forward (the PSIS tissue, pushing up too, tilts the
+    frame: under 12 mm across), and `davis_tissue_cov` states that shift
+    along the pelvis x axis (sd sqrt(t² + σ²)), nothing across it."""
+    from kinematics.gait.pig import davis_hip_offset, pelvis_frame
+    from kinematics.gait.subject import SubjectMeasurements
+    from personalize.pipeline.motion import davis_tissue_cov
+
+    subj = SubjectMeasurements(left_leg_length=0.9, right_leg_length=0.9, left_knee_width=0.1, right_knee_width=0.1,
+                               left_ankle_width=0.07, right_ankle_width=0.07)
+    tilt = np.radians(10.0)
+    fwd, up = np.array([np.cos(tilt), 0.0, -np.sin(tilt)]), np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    left = np.array([0.0, 1.0, 0.0])
+    r = 0.007                                               # the markers' radius
+    bone = {"RASI": -0.12 * left, "LASI": 0.12 * left, "RPSI": -0.15 * fwd - 0.04 * left,
+            "LPSI": -0.15 * fwd + 0.04 * left}
+    # the skin's normals: over the spines forward and out, over the PSIS backward and up
+    normal = {k: v / np.linalg.norm(v) for k, v in {"RASI": fwd - 0.3 * left, "LASI": fwd + 0.3 * left,
+                                                     "RPSI": -fwd + 0.5 * up, "LPSI": -fwd + 0.5 * up}.items()}
+    tissue = {"RASI": 0.030, "LASI": 0.030, "RPSI": 0.040, "LPSI": 0.040}
+
+    def davis(t):
+        m = {k: p + (t.get(k, 0.0) + r) * normal[k] for k, p in bone.items()}
+        pose = pelvis_frame(m["RASI"][None], m["LASI"][None], 0.5 * (m["RPSI"] + m["LPSI"])[None])
+        iad = float(np.linalg.norm(m["RASI"] - m["LASI"]))
+        return pose.to_lab(davis_hip_offset(subj, "R", iad)[None])[0], pose.axes[0]
+
+    bare, axes = davis({})
+    obese, _ = davis(tissue)
+    shift = obese - bare
+    assert 0.018 < shift @ fwd < 0.030 and np.linalg.norm(shift - (shift @ fwd) * fwd) < 0.012
+    skin = {k: (v, 0.008) for k, v in tissue.items()}
+    C = davis_tissue_cov({k: None for k in bone}, np.column_stack([fwd, left, up]), skin)
+    np.testing.assert_allclose(fwd @ C @ fwd, 0.030 ** 2 + 0.008 ** 2, rtol=1e-12)
+    np.testing.assert_allclose(C @ left, 0.0, atol=1e-15)
+    assert (shift @ fwd) ** 2 <= fwd @ C @ fwd                # the shift within 1 stated sd along x

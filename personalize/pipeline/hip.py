@@ -33,7 +33,7 @@ from ..fusion import Fused, fuse_linear
 from .joint_estimates import CentreEstimates, JointContext, JointEstimates
 from .segment_registration import carried_by_own_markers
 from .motion import (DAVIS_HIP_SD, FUNCTIONAL_HIP_MIN_RANGE_DEG, HARRINGTON_SD, PELVIS_CLUSTER, THIGH_MARKERS,
-                     harrington_hip, hip_range_of_motion, motion_hip, pelvis_rear, subject_marker_radius)
+                     davis_tissue_cov, harrington_hip, hip_range_of_motion, motion_hip, pelvis_rear, subject_marker_radius)
 
 __all__ = ["MRI_HIP_COV_SCALE", "MRI_HIP_COV_SCALE_MEASURED", "MRI_HIP_MODEL_SD", "MRI_HIP_MODEL_SD_MEASURED", "MOTION_HIP_MODEL_SD", "FEMUR_LANDMARKS", "fuse_hips", "femur_hip_centre", "estimate_hips", "hip_motion_trial"]
 
@@ -191,8 +191,11 @@ def estimate_hips(ctx: JointContext, reg_pelvis, pelvis_axes, est: JointEstimate
         except (InputError, FitError) as exc:
             if ctx.pig is not None:
                 hip_motion[s] = Gaussian.isotropic(np.median(ctx.pig.centres[f"hip_{s}"], axis=0),
-                                                   float(np.hypot(DAVIS_HIP_SD, MOTION_HIP_MODEL_SD)))
-                est.sources[f"hip_{s}_motion"] = "Plug-in-Gait (Davis) regression of the static trial"
+                                                   float(np.hypot(DAVIS_HIP_SD, MOTION_HIP_MODEL_SD))).inflated(
+                    davis_tissue_cov(ctx.static, pelvis_axes, _skin_of(est)))
+                est.sources[f"hip_{s}_motion"] = ("Plug-in-Gait (Davis) regression of the static trial (its sd widened "
+                                                  "forward by the soft tissue under the ASIS markers, which it does "
+                                                  "not see)")
                 used = "Plug-in-Gait regression"
             else:
                 hip_motion[s] = harrington_hip(ctx.static, s, pelvis_axes, _skin_of(est),

@@ -33,7 +33,7 @@ __all__ = ["motion_hip", "motion_knee_axis", "pig_static", "has_pig_markers", "M
            "DAVIS_HIP_SD", "PIG_KNEE_AXIS_SD_DEG", "THIGH_MARKERS", "SHANK_MARKERS", "PELVIS_CLUSTER",
            "hip_range_of_motion", "FUNCTIONAL_HIP_MIN_RANGE_DEG", "harrington_hip", "HARRINGTON_SD",
            "condylar_centre", "condylar_axis", "PALPATION_SD", "CONDYLAR_CENTRE_MODEL_SD", "CONDYLAR_AXIS_SD_DEG",
-           "pelvis_rear", "subject_marker_radius"]
+           "pelvis_rear", "subject_marker_radius", "pelvic_tissue", "davis_tissue_cov"]
 
 #: soft-tissue-artefact covariance of a SCoRE hip centre (m²) in the pelvis axes (anterior, medial, up; left legs
 #: mirrored): the second moment about zero of the training legs' SCoRE errors (sds 4.9, 7.2, 10.4 mm;
@@ -208,6 +208,38 @@ HARRINGTON = {"x": (-0.24, -9.9), "y": (-0.30, -10.9), "z": (0.33, 7.3)}
 HARRINGTON_SD = float(np.sqrt((12.3**2 + 5.9**2) / 3.0)) * 1e-3
 
 
+def pelvic_tissue(static: dict, skin: dict | None = None) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(mean, sd) m of the soft tissue under the anterior (RASI, LASI) and the posterior (RPSI, LPSI, else SACR)
+    pelvic markers: `skin` {marker: (mean, sd)} where given (measured or estimated), else the site prior
+    (`personalize.registration.skin_prior`); means averaged, variances averaged."""
+    from ..registration import skin_prior
+
+    def tissue(name):
+        v = (skin or {}).get(name)
+        return tuple(v) if v is not None else skin_prior(name)
+
+    out = []
+    for names in (("RASI", "LASI"), ("RPSI", "LPSI") if "RPSI" in static and "LPSI" in static else ("SACR", "SACR")):
+        t = [tissue(n) for n in names]
+        out.append((float(np.mean([a for a, _ in t])), float(np.sqrt(np.mean([b ** 2 for _, b in t])))))
+    return out[0], out[1]
+
+
+def davis_tissue_cov(static: dict, axes, skin: dict | None = None) -> np.ndarray:
+    """Covariance (3, 3) m² the soft tissue under the ASIS markers adds to the Davis (Plug-in-Gait) hip centre.
+
+    Davis et al. (1991) fitted the regression on radiographs, from the bony spines, and Plug-in-Gait moves the
+    ASIS markers in by the marker radius only: tissue of thickness t_A under them carries the pelvis origin, and
+    the centre placed from it, t_A forward along the pelvis x axis.  The mean is left as Plug-in-Gait gives it
+    (the baseline users compare with Nexus); the unmodelled shift enters as variance, (t̄_A² + σ_A²) x xᵀ
+    (`pelvic_tissue`), so that an obese subject's Davis centre, several centimetres forward, is not fused as if it
+    were an adult's.
+    """
+    (tA_m, tA_sd), _ = pelvic_tissue(static, skin)
+    x = np.asarray(axes, float)[:, 0]
+    return (tA_m ** 2 + tA_sd ** 2) * np.outer(x, x)
+
+
 def harrington_hip(static: dict, side: str, axes, skin: dict | None = None, marker_radius: float | None = None,
                    palpation: bool = True):
     """Hip centre (static lab, m) by the Harrington et al. (2007) regression of the pelvis markers, as a `Gaussian`.
@@ -225,21 +257,11 @@ def harrington_hip(static: dict, side: str, axes, skin: dict | None = None, mark
     """
     from lowerlimb.geometry import DEFAULT_MARKER_RADIUS
 
-    from ..registration import skin_prior
-
     r = DEFAULT_MARKER_RADIUS if marker_radius is None else float(marker_radius)
     A = np.asarray(axes, float)
     x, y, z = A[:, 0], A[:, 1], A[:, 2]
     rear, _ = pelvis_rear(static)
-
-    def tissue(name):
-        v = (skin or {}).get(name)
-        return tuple(v) if v is not None else skin_prior(name)
-
-    tA = [tissue(n) for n in ("RASI", "LASI")]
-    tP = [tissue(n) for n in (("RPSI", "LPSI") if "RPSI" in static and "LPSI" in static else ("SACR", "SACR"))]
-    tA_m, tA_sd = np.mean([t[0] for t in tA]), np.sqrt(np.mean([t[1] ** 2 for t in tA]))
-    tP_m, tP_sd = np.mean([t[0] for t in tP]), np.sqrt(np.mean([t[1] ** 2 for t in tP]))
+    (tA_m, tA_sd), (tP_m, tP_sd) = pelvic_tissue(static, skin)
     o = 0.5 * (static["RASI"].mean + static["LASI"].mean)
     pw = float(np.linalg.norm(static["RASI"].mean - static["LASI"].mean))
     pd = float((o - rear) @ x) - (tA_m + tP_m + 2 * r)
