@@ -4,10 +4,12 @@ Model (lab frame, SI).  The whole body's linear momentum gives the total
 ground reaction: ``F(t) = M (a_com(t) - g)`` with the centre of mass of the
 truth model's bodies (`phantoms.real_subject.segment_bodies`) and ``g`` along
 ``-up``.  The trials keep the lowest foot point on the floor
-(`phantoms.real_subject.on_the_floor`), so at any frame one foot is on it;
-that foot takes the whole reaction.  Its centre of pressure is the mean of its
-hull points within 3 mm of the floor (heel first, rolling to the toes); the
-free moment is taken as zero (the trunk's angular momentum is not modelled).
+(`phantoms.real_subject.on_the_floor`); a foot within `CONTACT_HEIGHT` of the
+lower one is on it too.  A single foot on the floor takes the whole reaction;
+over a double support the trailing foot hands it over smoothly
+(`transfer_share`).  Each foot's centre of pressure is the mean of its hull
+points within 3 mm of its lowest (heel first, rolling to the toes); the free
+moment is taken as zero (the trunk's angular momentum is not modelled).
 
 Plates: one 0.5 x 0.4 m plate (long side along the walk, surface at floor
 level) centred under each complete stance phase (at most `max_plates`),
@@ -25,12 +27,30 @@ __all__ = ["ground_reaction", "stance_plates", "add_force_plates"]
 PLATE_SIZE = (0.5, 0.4)          # m, along the walk x across
 
 
+#: m, a foot whose lowest point is within this height of the lower foot's is on the floor too: the walk keeps
+#: the lower foot on the floor, and at heel strike the leading heel lands while the trailing toe is still down
+#: within 1-2 cm (10-15 % of the cycle in double support with 15 mm, against walking's ~20 %)
+CONTACT_HEIGHT = 0.015
+
+
+def transfer_share(n: int) -> np.ndarray:
+    """Share (n,) of the total reaction the trailing foot keeps over the n frames of a double support: the
+    smooth-transition assumption of Ren, Jones & Howard (2008, J Biomech 41:2750), here a cubic step from 1 to 0
+    (1 - 3τ² + 2τ³, τ = (i + 1) / (n + 1)): the leading foot takes the load gradually, not all of it at heel
+    strike, where it would stand 30-40 cm ahead of the hip."""
+    tau = (np.arange(n) + 1.0) / (n + 1.0)
+    return 1.0 - tau ** 2 * (3.0 - 2.0 * tau)
+
+
 def ground_reaction(anat, model, q: np.ndarray, rate: float, lab):
-    """Total ground reaction and the foot that carries it.
+    """Total ground reaction of the whole body's momentum, split between the feet on the floor.
 
     Returns
     -------
-    force : (F, 3) N, lab; cop : (F, 3) m, lab; foot : (F,) array of "r"/"l"
+    force : {"r", "l": (F, 3) N} lab, the reaction on each foot (0 in the air); cop : {side: (F, 3) m} lab, each
+    foot's centre of pressure (its hull points within 3 mm of its lowest, on the floor); contact : {side: (F,)
+    bool}.  A single foot on the floor takes the whole reaction; over a double support the trailing foot's share
+    falls as `transfer_share`.
     """
     from .real_subject import _fk, _foot_points
 
@@ -44,43 +64,79 @@ def ground_reaction(anat, model, q: np.ndarray, rate: float, lab):
     dt = 1.0 / rate
     acc = np.gradient(np.gradient(com, dt, axis=0), dt, axis=0)
     up = np.asarray(lab.up, float)
-    force = M * (acc + 9.80665 * up)
-    low, pts = {}, {}
+    total = M * (acc + 9.80665 * up)
+    pts = {}
     for k, V in _foot_points(anat):
         side = model.body_names[k][-1]
         P = np.einsum("fij,pj->fpi", st.rotations[:, k], V) + st.positions[:, k][:, None]
         pts.setdefault(side, []).append(P)
-    cop = np.zeros_like(com)
-    for s in pts:
-        pts[s] = np.concatenate(pts[s], axis=1)
-        low[s] = (pts[s] @ up).min(axis=1)
     sides = sorted(pts)
-    foot = np.array([min(sides, key=lambda s: low[s][f]) for f in range(q.shape[0])])
-    for f in range(q.shape[0]):
-        P = pts[foot[f]][f]
-        h = P @ up
-        near = P[h < h.min() + 0.003]
-        c = near.mean(axis=0)
-        cop[f] = c - (c @ up) * up               # on the floor
-    return force, cop, foot
-
-
-def stance_plates(cop: np.ndarray, foot: np.ndarray, lab, max_plates: int = 4):
-    """Plates under the complete stance phases: list of (corners (4, 3) m, centre (3,), side, first, last)."""
-    F = len(foot)
-    runs = []
-    a = 0
-    for f in range(1, F + 1):
-        if f == F or foot[f] != foot[a]:
-            if a > 0 and f < F and f - a >= 5:
-                runs.append((a, f - 1, str(foot[a])))
+    low, cop = {}, {}
+    for s in sides:
+        pts[s] = np.concatenate(pts[s], axis=1)
+        h = pts[s] @ up
+        low[s] = h.min(axis=1)
+        near = h < low[s][:, None] + 0.003
+        c = np.einsum("fp,fpi->fi", near, pts[s]) / near.sum(axis=1)[:, None]
+        cop[s] = c - (c @ up)[:, None] * up[None]              # on the floor
+    floor = np.min([low[s] for s in sides], axis=0)
+    contact = {s: low[s] - floor < CONTACT_HEIGHT for s in sides}
+    share = {s: contact[s].astype(float) for s in sides}
+    if len(sides) == 2:
+        both = contact[sides[0]] & contact[sides[1]]
+        F = len(both)
+        f = 0
+        while f < F:
+            if not both[f]:
+                f += 1
+                continue
             a = f
+            while f < F and both[f]:
+                f += 1
+            b = f                                              # double support a .. b - 1
+            # the trailing foot landed first (at the trial's start: the one that leaves first)
+            key = {s: (_run_start(contact[s], a), _run_end(contact[s], b)) for s in sides}
+            trail = min(sides, key=lambda s: key[s])
+            lead = sides[1] if trail == sides[0] else sides[0]
+            w = transfer_share(b - a)
+            share[trail][a:b], share[lead][a:b] = w, 1.0 - w
+    force = {s: share[s][:, None] * total for s in sides}
+    return force, cop, contact
+
+
+def _run_start(on: np.ndarray, f: int) -> int:
+    while f > 0 and on[f - 1]:
+        f -= 1
+    return f
+
+
+def _run_end(on: np.ndarray, f: int) -> int:
+    while f < len(on) and on[f]:
+        f += 1
+    return f
+
+
+def stance_plates(cop: dict, contact: dict, lab, max_plates: int = 4):
+    """Plates under the complete stance phases, in time order: list of (corners (4, 3) m, centre (3,), side,
+    first, last frame)."""
+    runs = []
+    for side, on in contact.items():
+        F = len(on)
+        a = None
+        for f in range(F + 1):
+            if f < F and on[f] and a is None:
+                a = f
+            elif (f == F or not on[f]) and a is not None:
+                if a > 0 and f < F and f - a >= 5:
+                    runs.append((a, f - 1, str(side)))
+                a = None
+    runs.sort()
     fwd = np.asarray(lab.forward, float)
     up = np.asarray(lab.up, float)
     left = np.cross(up, fwd)
     plates = []
     for a, b, side in runs[:max_plates]:
-        c = cop[a:b + 1].mean(axis=0)
+        c = cop[side][a:b + 1].mean(axis=0)
         hx, hy = PLATE_SIZE[0] / 2, PLATE_SIZE[1] / 2
         # c1..c4 such that X = c1 - c2 (forward) and Z = X x (c1 - c4) is up (kinematics.io.forceplates)
         corners = np.array([c + hx * fwd + hy * left, c - hx * fwd + hy * left,
@@ -89,14 +145,16 @@ def stance_plates(cop: np.ndarray, foot: np.ndarray, lab, max_plates: int = 4):
     return plates
 
 
-def add_force_plates(c3d_path, force, cop, foot, lab, rate: float, *, max_plates: int = 4, analog_per_frame: int = 10):
-    """Add type-2 force platforms to the C3D at `c3d_path` (rewritten atomically); returns the plates' truth."""
+def add_force_plates(c3d_path, force, cop, contact, lab, rate: float, *, max_plates: int = 4,
+                     analog_per_frame: int = 10):
+    """Add type-2 force platforms to the C3D at `c3d_path` (rewritten atomically), each carrying its foot's
+    reaction over its stance (`ground_reaction`'s per-foot dicts); returns the plates' truth."""
     import ezc3d
 
     from lowerlimb.atomic import atomic_path
 
-    plates = stance_plates(cop, foot, lab, max_plates)
-    F = force.shape[0]
+    plates = stance_plates(cop, contact, lab, max_plates)
+    F = len(next(iter(contact.values())))
     fwd, up = np.asarray(lab.forward, float), np.asarray(lab.up, float)
     R = np.column_stack([fwd, np.cross(up, fwd), up])            # plate axes in the lab
     n_an = F * analog_per_frame
@@ -107,8 +165,8 @@ def add_force_plates(c3d_path, force, cop, foot, lab, rate: float, *, max_plates
     for i, (corners, c, side, a, b) in enumerate(plates):
         on = np.zeros(F, bool)
         on[a:b + 1] = True
-        f_lab = np.where(on[:, None], force, 0.0)
-        p = np.where(on[:, None], cop, c)
+        f_lab = np.where(on[:, None], force[side], 0.0)
+        p = np.where(on[:, None], cop[side], c)
         m_lab = np.cross(p - c, f_lab)                           # about the surface centre, free moment 0
         f_pl, m_pl = f_lab @ R, m_lab @ R
         for j in range(3):

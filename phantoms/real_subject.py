@@ -152,10 +152,21 @@ def coordinate_signs(anat: RealAnatomy, q0: np.ndarray) -> dict:
     return {k: float(v) if v != 0 else 1.0 for k, v in out.items()}
 
 
+#: m/s², the fore-aft acceleration amplitude of a walk's centre of mass (about 0.17 g: the braking and propulsive
+#: ground reactions of 0.15-0.2 body weight at 1.2-1.4 m/s, Winter 2009, Biomechanics and Motor Control of
+#: Human Movement, ch. 5); the walks of force-plate phantoms have it (`real_gait_coordinates` ``surge``)
+WALK_SURGE = 1.7
+
+
 def real_gait_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, rate: float, cycles: float = 2.0,
                           speed: float = 1.25, cycle_time: float = 1.1, rng=None,
-                          smooth_hz: float | None = None) -> np.ndarray:
+                          smooth_hz: float | None = None, surge: float = 0.0) -> np.ndarray:
     """Walking (F, n_q) on `phantoms.motion`'s normative curves in the expert model's coordinates.
+
+    `surge` (m/s²): amplitude of the pelvis's forward acceleration at twice the stride frequency, braking after
+    each heel strike and propelling before the next, as the centre of mass of a walk does (about 0.15-0.2 g
+    fore-aft; without it the pelvis keeps a constant speed and the momentum's ground reaction has no braking
+    and propulsion).
 
     The pelvis height keeps the lowest foot point on the floor (`on_the_floor`); with `smooth_hz` it is
     then low-passed (2nd-order Butterworth, zero lag): the vertical ground reaction of the whole body's
@@ -190,6 +201,9 @@ def real_gait_coordinates(anat: RealAnatomy, q0: np.ndarray, signs: dict, rate: 
     q[:, ix("pelvis_list")] += np.radians(4.0) * np.sin(2 * np.pi * phase)
     q[:, ix("pelvis_rotation")] += np.radians(5.0) * np.sin(2 * np.pi * phase + np.pi / 2)
     q[:, ix("pelvis_tx")] += speed * t
+    if surge:
+        w = 4.0 * np.pi / cycle_time
+        q[:, ix("pelvis_tx")] += surge / w ** 2 * np.sin(4.0 * np.pi * phase)
     q[:, ix("pelvis_tz")] += 0.015 * np.sin(2 * np.pi * phase)
     q = on_the_floor(anat, q)
     if smooth_hz:
@@ -337,7 +351,7 @@ class RealTrial:
 def make_real_trials(anat: RealAnatomy, lab: Lab, placed: dict, q0, signs, seed: int, *, rate: float = 100.0,
                      gait_trials: int = 1, gait_cycles: float = 2.0, functional: bool = True, static_frames: int = 200,
                      sta: bool = True, sta_scale: float = 1.0, noise_sd: float = 0.0005,
-                     static_only: tuple = (), smooth_hz: float | None = None) -> list[RealTrial]:
+                     static_only: tuple = (), smooth_hz: float | None = None, surge: float = 0.0) -> list[RealTrial]:
     """Static, gait and (optionally) functional trials of the placed markers (no file written)."""
     from kinematics.algorithms.fk import point_positions
 
@@ -370,7 +384,7 @@ def make_real_trials(anat: RealAnatomy, lab: Lab, placed: dict, q0, signs, seed:
     add("static", "static", np.repeat(q0[None], max(int(static_frames), 1), axis=0))
     for i in range(gait_trials):
         add(f"gait_{i + 1:02d}", "gait", real_gait_coordinates(anat, q0, signs, rate, gait_cycles, rng=rng,
-                                                               smooth_hz=smooth_hz))
+                                                               smooth_hz=smooth_hz, surge=surge))
     if functional:
         add("functional_hip", "functional", real_functional_coordinates(anat, q0, signs, rate))
     return trials
@@ -459,7 +473,8 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
         raise InputError("--force-plates", "force platforms are written in C3D trials: use --format c3d or both")
     trials = make_real_trials(anat, lab, placed, q0, signs, seed, rate=rate, gait_trials=gait_trials,
                               functional=functional, static_frames=static_frames, sta=sta, sta_scale=sta_scale,
-                              noise_sd=noise_sd, static_only=static_only, smooth_hz=4.0 if force_plates else None)
+                              noise_sd=noise_sd, static_only=static_only, smooth_hz=4.0 if force_plates else None,
+                              surge=WALK_SURGE if force_plates else 0.0)
     bmi = {"child": 17.0, "adult": 23.0, "obese": 34.0}[build]
     hip_knee = [np.linalg.norm(anat.joints_scanner[f"hip_{s}"][0] - anat.joints_scanner[f"knee_{s}"][0])
                 for s in anat.sides]
@@ -507,13 +522,15 @@ def write_real_subject(out_dir, anat: RealAnatomy, *, marker_set="ior", lab: Lab
 
                 from .force_plates import add_force_plates, ground_reaction
 
-                grf, cop, foot = ground_reaction(anat, model, tr.q, rate, lab)
-                plates_truth[tr.name] = add_force_plates(inside(out, f"{stem}.c3d"), grf, cop, foot, lab, rate)
-                cols = [f"ground_force_v{a}" for a in "xyz"] + [f"ground_force_p{a}" for a in "xyz"] + ["foot_right"]
+                grf, cop, contact = ground_reaction(anat, model, tr.q, rate, lab)
+                plates_truth[tr.name] = add_force_plates(inside(out, f"{stem}.c3d"), grf, cop, contact, lab, rate)
+                cols = [f"{s}_ground_force_{k}{a}" for s in sorted(grf) for k in "vp" for a in "xyz"] + \
+                    [f"{s}_contact" for s in sorted(grf)]
                 write_sto(inside(truth_dir, f"{tr.name}_grf.sto"), cols, tr.time,
-                          np.column_stack([grf, cop, (foot == "r").astype(float)]),
-                          header_extra=["frame=lab; force on the subject N; centre of pressure m; foot_right 1/0"],
-                          name="GroundReaction")
+                          np.column_stack([grf[s] if k == "v" else cop[s] for s in sorted(grf) for k in "vp"]
+                                          + [contact[s].astype(float) for s in sorted(grf)]),
+                          header_extra=["frame=lab; per foot (l, r): force on the subject N, centre of pressure m, "
+                                        "contact 1/0"], name="GroundReaction")
         if trial_format in ("trc", "both"):
             write_trc(inside(out, f"{stem}.trc"), tr.markers)
         # the model's coordinates, plus knee_flexion_<s> (flexion positive; not a model coordinate) so that
