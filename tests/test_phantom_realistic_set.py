@@ -39,3 +39,27 @@ def test_coverage_metric_counts_truth_inside_the_95_ellipsoid(tmp_path):
     m = coverage_metrics(summary, tmp_path)
     assert m["coverage.hip_r.mri"] == 1.0 and m["coverage.hip_r.motion"] == 0.0 and m["coverage.hip_r.fused"] == 1.0
     assert abs(m["mahalanobis2.hip_r.motion"] - 9.0) < 1e-3
+
+
+def test_no_palpation_ablation_reaches_the_real_anatomy_phantoms(shared_data, tmp_path, monkeypatch):
+    """``--no-palpation``: the same draws with the bony markers placed exactly; the flag survives realistic.json and
+    reaches `phantoms.real_subject.write_real_subject`."""
+    import json
+    from dataclasses import replace
+
+    import phantoms.real_subject as rs
+    from personalize.evaluation import realistic_set as R
+
+    a = R.draw_realistic_subjects(6, 0, shared_data)
+    b = R.draw_realistic_subjects(6, 0, shared_data, palpation=False)
+    assert all(s.palpation for s in a) and [replace(s, palpation=False) for s in a] == b
+    spec = next(s for s in b if s.anatomy != "analytic")
+    assert R.RealisticSpec.from_json(json.loads(json.dumps(spec.to_json()))) == spec
+    d = tmp_path / "subject"
+    d.mkdir()
+    (d / R.REALISTIC_SPEC).write_text(json.dumps(spec.to_json()), encoding="utf-8")
+    seen = {}
+    monkeypatch.setattr(rs, "write_real_subject", lambda stage, anat, **kw: seen.update(kw))
+    monkeypatch.setattr(R, "_real_anatomy", lambda root, name: None)
+    R.ensure_realistic_subject(d)
+    assert seen["palpation"] is False

@@ -32,6 +32,9 @@ def validate(
                                    "without a functional trial, label volumes and mesh folders."),
     data: Path = typer.Option(None, "--data", help="Root of the real data (bones/, reference_models/) for --realistic; "
                                                    "default ../shared/data."),
+    palpation: bool = typer.Option(True, "--palpation/--no-palpation", help="--realistic: bony markers misplaced as "
+                                   "palpation misplaces them (default), or exactly on their landmarks (an ablation: "
+                                   "what the palpation error costs)."),
 ) -> None:
     """Run the pipeline on random phantom subjects and summarise its errors against truth."""
     from rich.console import Console
@@ -42,7 +45,7 @@ def validate(
     console = Console(stderr=True)
     if realistic:
         res = run_realistic_validation(subjects, seed, out, data_root=data, scheduler=scheduler or None,
-                                       workers=workers, job=job or None, console=console)
+                                       workers=workers, job=job or None, console=console, palpation=palpation)
         print_batch(res.batch, console)
         console.print(f"metrics: {res.metrics_csv}\nreport:  {res.report}")
         return

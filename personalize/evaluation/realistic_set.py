@@ -41,7 +41,9 @@ class RealisticSpec:
     lab : z-up / y-up; walk : walking direction; tissue : child, adult, obese (analytic: its own adult prior);
     functional : functional hip trial written; imaging : ``labels`` (label volume) or ``meshes`` (bones/ folder);
     voxel_mm, segmentation_noise, marker_noise_m, sta_scale : as `PhantomSpec`; static_name, trial_format,
-    static_frames : how the lab names and records its files; fibula_mesh : fibula as its own bone.
+    static_frames : how the lab names and records its files; fibula_mesh : fibula as its own bone; palpation :
+    the bony markers misplaced as palpation misplaces them (`phantoms.marker_placement`); False places them
+    exactly, an ablation that shows what palpation costs (real-anatomy subjects only).
     """
 
     subject: str
@@ -62,6 +64,7 @@ class RealisticSpec:
     static_frames: int
     fibula_mesh: bool
     data_root: str = ""
+    palpation: bool = True
 
     def to_json(self) -> dict:
         return {**asdict(self), "units": {"voxel": "mm", "marker_noise": "m"}}
@@ -77,10 +80,12 @@ class RealisticSpec:
                 "voxel_mm": self.voxel_mm, "segmentation_noise": self.segmentation_noise,
                 "marker_noise_mm": self.marker_noise_m * 1e3, "sta_scale": self.sta_scale,
                 "static_file": self.static_name, "format": self.trial_format, "static_frames": self.static_frames,
-                "fibula_mesh": int(self.fibula_mesh), "phantom_seed": self.seed}
+                "fibula_mesh": int(self.fibula_mesh), "palpation": int(self.palpation),
+                "phantom_seed": self.seed}
 
 
-def draw_realistic_subjects(n: int, seed: int, data_root: str | os.PathLike | None = None) -> list[RealisticSpec]:
+def draw_realistic_subjects(n: int, seed: int, data_root: str | os.PathLike | None = None, *,
+                            palpation: bool = True) -> list[RealisticSpec]:
     """The realistic validation set: `n` subjects mixing anatomy, marker set, lab, tissue and files.
 
     Factors rotate with the subject index so that any 12 consecutive subjects cover every level:
@@ -89,7 +94,8 @@ def draw_realistic_subjects(n: int, seed: int, data_root: str | os.PathLike | No
     anatomies); tissue child / adult / obese (the analytic phantom: its own adult prior); a functional hip trial in every other
     subject; a label volume or a mesh folder; ``Static.c3d`` or ``static.c3d``, C3D or TRC trials,
     static trials of 7 to 200 frames.  Continuous draws (voxel size, segmentation and marker noise, STA
-    scale, walking direction) from `seed`.
+    scale, walking direction) from `seed`.  ``palpation=False``: every real-anatomy subject's bony markers sit
+    exactly on their landmarks (`RealisticSpec.palpation`), the draws otherwise the same.
     """
     if not (1 <= n <= 10000):
         raise InputError("--subjects", f"{n} is outside 1-10000")
@@ -120,7 +126,7 @@ def draw_realistic_subjects(n: int, seed: int, data_root: str | os.PathLike | No
             static_name="Static" if (real and r % 4 == 1) else "static",
             trial_format="trc" if (real and r % 5 == 4) else "c3d",
             static_frames=int(rng.choice([7, 20, 200])) if real else 50, fibula_mesh=bool(r % 6 != 5),
-            data_root=os.fspath(root) if root else ""))
+            data_root=os.fspath(root) if root else "", palpation=bool(palpation)))
     return out
 
 
@@ -176,7 +182,8 @@ def ensure_realistic_subject(subject_dir: str | os.PathLike, progress: Callable[
                                mesh_folder="meshes" if spec.imaging == "labels" else "bones",
                                functional=spec.functional, static_frames=spec.static_frames,
                                static_name=spec.static_name, trial_format=spec.trial_format,
-                               sta_scale=spec.sta_scale, noise_sd=spec.marker_noise_m, progress=progress)
+                               sta_scale=spec.sta_scale, noise_sd=spec.marker_noise_m, palpation=spec.palpation,
+                               progress=progress)
     write_text(d / GENERATED, json.dumps({"spec": spec.to_json()}, indent=1) + "\n")
     return d
 

@@ -139,8 +139,8 @@ def _realistic_metrics(summary: dict, subject_dir: Path) -> dict:
 
 def run_realistic_validation(n: int, seed: int, out: str | os.PathLike, *, data_root: str | os.PathLike | None = None,
                              scheduler=None, workers: int = 2, job: str | None = None, progress: bool = True,
-                             console=None) -> ValidationResult:
-    """`draw_realistic_subjects`, write and run them; ``metrics.csv`` (refusals as rows with their reason) and report.
+                             console=None, palpation: bool = True) -> ValidationResult:
+    """`draw_realistic_subjects` (``palpation``: see there), write and run them; ``metrics.csv`` (refusals as rows with their reason) and report.
 
     Metrics per subject: every numeric summary entry (joint centre and axis errors of the MRI-only,
     motion-only and fused estimates, IK angle RMSE, IK residuals) plus `coverage_metrics`.
@@ -150,7 +150,7 @@ def run_realistic_validation(n: int, seed: int, out: str | os.PathLike, *, data_
     job = _checked_job(out, job)
     if data_root is None:
         data_root = Path(__file__).resolve().parents[3] / "shared" / "data"
-    specs = draw_realistic_subjects(n, seed, data_root if Path(data_root).is_dir() else None)
+    specs = draw_realistic_subjects(n, seed, data_root if Path(data_root).is_dir() else None, palpation=palpation)
     if console is not None and all(s.anatomy == "analytic" for s in specs):
         console.print(f"[yellow]warning:[/] no real anatomy under {data_root} (bones/ICL_MRI, bones/LHDL_CT and "
                       "their reference_models): every subject is analytic; give the real data with --data")
