@@ -85,20 +85,11 @@ def ground_reaction(anat, model, q: np.ndarray, rate: float, lab):
     contact = {s: low[s] - floor < CONTACT_HEIGHT for s in sides}
     share = {s: contact[s].astype(float) for s in sides}
     if len(sides) == 2:
-        both = contact[sides[0]] & contact[sides[1]]
-        F = len(both)
-        f = 0
-        while f < F:
-            if not both[f]:
-                f += 1
-                continue
-            a = f
-            while f < F and both[f]:
-                f += 1
-            b = f                                              # double support a .. b - 1
-            # the trailing foot landed first (at the trial's start: the one that leaves first)
-            key = {s: (_run_start(contact[s], a), _run_end(contact[s], b)) for s in sides}
-            trail = min(sides, key=lambda s: key[s])
+        stances = {s: _runs(contact[s]) for s in sides}
+        for a, b in _runs(contact[sides[0]] & contact[sides[1]]):      # double support a .. b - 1
+            # each foot's stance holding it: the trailing foot landed first (at the trial's start: it leaves first)
+            key = {s: next((int(r0), int(r1)) for r0, r1 in stances[s] if r0 <= a < r1) for s in sides}
+            trail = min(sides, key=key.get)
             lead = sides[1] if trail == sides[0] else sides[0]
             w = transfer_share(b - a)
             share[trail][a:b], share[lead][a:b] = w, 1.0 - w
@@ -106,33 +97,17 @@ def ground_reaction(anat, model, q: np.ndarray, rate: float, lab):
     return force, cop, contact
 
 
-def _run_start(on: np.ndarray, f: int) -> int:
-    while f > 0 and on[f - 1]:
-        f -= 1
-    return f
-
-
-def _run_end(on: np.ndarray, f: int) -> int:
-    while f < len(on) and on[f]:
-        f += 1
-    return f
+def _runs(on: np.ndarray) -> np.ndarray:
+    """(first, end) frames (end exclusive), (n, 2), of the runs of True in the boolean series `on`."""
+    d = np.diff(np.concatenate([[0], np.asarray(on, np.int8), [0]]))
+    return np.column_stack([np.flatnonzero(d == 1), np.flatnonzero(d == -1)])
 
 
 def stance_plates(cop: dict, contact: dict, lab, max_plates: int = 4):
     """Plates under the complete stance phases, in time order: list of (corners (4, 3) m, centre (3,), side,
     first, last frame)."""
-    runs = []
-    for side, on in contact.items():
-        F = len(on)
-        a = None
-        for f in range(F + 1):
-            if f < F and on[f] and a is None:
-                a = f
-            elif (f == F or not on[f]) and a is not None:
-                if a > 0 and f < F and f - a >= 5:
-                    runs.append((a, f - 1, str(side)))
-                a = None
-    runs.sort()
+    runs = sorted((int(a), int(b) - 1, str(side)) for side, on in contact.items() for a, b in _runs(on)
+                  if a > 0 and b < len(on) and b - a >= 5)
     fwd = np.asarray(lab.forward, float)
     up = np.asarray(lab.up, float)
     left = np.cross(up, fwd)
