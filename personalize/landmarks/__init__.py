@@ -172,7 +172,7 @@ def _detection_graph(names: list[str], prepare, run, surf: dict, ls: LandmarkSet
     A detector reads its neighbours' surfaces and, for hints, the results of the bones before it in its
     chain (femur -> pelvis, patella; tibia -> fibula, talus -> calcaneus -> toes); nothing else, so any
     order the dependencies allow gives the same landmarks.  Listed longest chain first (tibia, talus,
-    calcaneus wait for each other; the femur and the pelvis do not): the order in which two threads
+    calcaneus wait for each other; the femur and the pelvis do not): the order in which the threads
     take ready tasks.
     """
     present = set(names)
