@@ -160,6 +160,16 @@ def even_sampling(obj, name: str = "bone"):
     return out, note
 
 
+def _is_closed(F: np.ndarray, n_vertices: int) -> bool:
+    """Every edge shared by exactly two faces (trimesh's ``is_watertight``, from one sort of integer edge keys
+    instead of trimesh's row hashing and grouping: ICL_MRI's eight bones 0.07 -> 0.03 s)."""
+    if len(F) == 0:
+        return False
+    e = np.sort(F[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(e[:, 0] * np.int64(n_vertices) + e[:, 1], return_counts=True)
+    return bool(np.all(counts == 2))
+
+
 def as_surface(obj, name: str = "bone") -> Surface:
     """Wrap a trimesh, a `BoneSurface` (``.mesh``) or a Surface.
 
@@ -185,7 +195,7 @@ def as_surface(obj, name: str = "bone") -> Surface:
     # a third of each incident face's area (bincount: an order of magnitude faster than np.add.at)
     areas = np.bincount(F.ravel(), weights=np.repeat(fa / 3.0, 3), minlength=len(V))
     vn = vertex_normals(V, F)
-    closed = bool(getattr(mesh, "is_watertight", False))
+    closed = _is_closed(F, len(V))
     # Orient normals outwards: signed volume of a closed surface must be positive.
     vol = float(np.einsum("ij,ij->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))) / 6.0
     if vol < 0:
