@@ -291,6 +291,12 @@ def _bow(surface: Surface, hp, bot, top) -> np.ndarray:
     return cen(0.45, 0.55) - 0.5 * (cen(0.2, 0.3) + cen(0.7, 0.8))
 
 
+#: head radii from the head centre beyond which no face can belong to a neck section `_neck` takes (its planes lie
+#: 0.9-2.2 radii from the centre and keep loops centred within 1.5 radii of the neck line; an oblique cut of the
+#: shaft spans under 3 radii)
+NECK_SECTION_BALL = 8.0
+
+
 def _neck(surface, res, head, sp, sd, prox_region):
     """Neck axis and narrowest neck diameter from cross-sections.
 
@@ -312,7 +318,10 @@ def _neck(surface, res, head, sp, sd, prox_region):
     else:
         foot = sp + ((c - sp) @ sd) * sd
         d = unit(foot - c)
-    mesh = trimesh.Trimesh(surface.vertices, surface.faces, process=False)
+    # the sections are cut from the proximal femur only (faces within NECK_SECTION_BALL head radii of the head
+    # centre, which holds every loop that can be chosen): the same loops, sliced from a third of the faces
+    near = np.linalg.norm(surface.vertices - c, axis=1) < NECK_SECTION_BALL * r
+    mesh = trimesh.Trimesh(surface.vertices, surface.faces[near[surface.faces].any(axis=1)], process=False)
     best = None
     for it in range(3):
         cents, diams = [], []
