@@ -246,7 +246,11 @@ def edge_curvature(surface: Surface) -> np.ndarray:
     if H is not None:
         return H
     V, N, F = surface.vertices, surface.normals, surface.faces
-    e = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
+    # the unique edges in np.unique(..., axis=0)'s (lexicographic) order, from one sort of integer keys
+    n = np.int64(len(V))
+    e2 = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1).astype(np.int64)
+    key = np.unique(e2[:, 0] * n + e2[:, 1])
+    e = np.column_stack([key // n, key % n])
     dp = V[e[:, 1]] - V[e[:, 0]]
     k = np.einsum("ij,ij->i", dp, N[e[:, 1]] - N[e[:, 0]]) / np.maximum(np.einsum("ij,ij->i", dp, dp), 1e-18)
     ks = np.bincount(e[:, 0], k, len(V)) + np.bincount(e[:, 1], k, len(V))
