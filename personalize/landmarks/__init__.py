@@ -186,13 +186,12 @@ def _detection_graph(names: list[str], prepare, run, surf: dict, ls: LandmarkSet
             add(f"prep {b}", (), lambda b=b: prepare(b))
 
     for s in ("r", "l"):
-        fem, tib, fib, tal, cal, toe, pat = (f"{b}_{s}" for b in ("femur", "tibia", "fibula", "talus", "calcn",
-                                                                  "toes", "patella"))
+        fem, tib, fib, tal, cal, toe = (f"{b}_{s}" for b in ("femur", "tibia", "fibula", "talus", "calcn", "toes"))
         for b in (tib, fem, tal, fib):
             prep(b)
         shank: dict = {}
         if tib in present:
-            def _tib(s=s, tib=tib, fib=fib, fem=fem, tal=tal, shank=shank):
+            def _tib(tib=tib, fib=fib, fem=fem, tal=tal, shank=shank):
                 def fn():
                     r, shank["fibula_component"] = detect_tibia(surf[tib], tib, fibula=surf.get(fib),
                                                                 femur=surf.get(fem), talus=surf.get(tal))
@@ -202,9 +201,7 @@ def _detection_graph(names: list[str], prepare, run, surf: dict, ls: LandmarkSet
         prep(cal)
 
         def _talus(tib=tib, tal=tal, cal=cal, shank=shank):
-            t = ls.bones.get(tib)
-            up, right = (t.frames["anatomical"]["rotation"][:, 1:].T if t is not None and "anatomical" in t.frames
-                         else (None, None))
+            up, right = _up_right(ls, tib)
             shank["tibia_surface"] = tibia_surface(surf[tib]) if tib in surf else None
             run(tal, lambda: detect_talus(surf[tal], tal, tibia=shank["tibia_surface"], calcaneus=surf.get(cal),
                                           right_hint=right, up_hint=up))
@@ -229,13 +226,7 @@ def _detection_graph(names: list[str], prepare, run, surf: dict, ls: LandmarkSet
         add(f"malleoli {s}", (tib, fib, tal), _malleoli)
 
         def _calcn(tib=tib, tal=tal, cal=cal):
-            up = right = None
-            for b in (tib, tal):
-                res = ls.bones.get(b)
-                if res is not None and "anatomical" in res.frames:
-                    R = res.frames["anatomical"]["rotation"]
-                    up = R[:, 1] if up is None else up
-                    right = R[:, 2] if right is None else right
+            up, right = _up_right(ls, tib, tal)
             run(cal, lambda: detect_calcn(surf[cal], cal, up_hint=up, right_hint=right, talus=surf.get(tal)))
         if cal in present:
             add(cal, (f"prep {cal}", f"prep {tal}", tib, tal), _calcn)
@@ -270,6 +261,17 @@ def _detection_graph(names: list[str], prepare, run, surf: dict, ls: LandmarkSet
     for b in names:
         prep(b)
     return g
+
+
+def _up_right(ls: LandmarkSet, *bones: str) -> tuple:
+    """The superior (Y) and right (Z) axes of the first of `bones` detected with an anatomical frame, the
+    detectors' orientation hints (None, None without one)."""
+    for b in bones:
+        res = ls.bones.get(b)
+        if res is not None and "anatomical" in res.frames:
+            R = res.frames["anatomical"]["rotation"]
+            return R[:, 1], R[:, 2]
+    return None, None
 
 
 def _tibia_isb(ls: LandmarkSet, s: str) -> None:
