@@ -7,7 +7,8 @@ labels fit, ``markers.json`` (or ``--marker-set FILE|PRESET``); the folder `pers
 writes is itself a valid SUBJECT_DIR.  Writes model.osim, model.json,
 meshes/ (at most 20,000 faces per bone unless --full-meshes), muscles.json (``--muscles``), landmarks.json, joints.json,
 kinematics/<trial>.mot (+ marker errors, TRC and IK setup; trials with force plates: ground reactions,
-ID and static-optimisation setups, reserve_actuators.xml), report.html and summary.json; when the subject is refused, only
+ID and static-optimisation setups, reserve_actuators.xml), generic/ (gait2392 scaled to the same markers, its IK of
+every trial; ``--generic``), report.html and summary.json; when the subject is refused, only
 report.html stating the error (exit code 2 with a one-line message).  --out is
 checked before any work (`personalize.outputs`): an existing non-empty folder
 is refused unless --overwrite, which replaces it whole.  Progress: step N of
@@ -39,6 +40,10 @@ def register(app: typer.Typer) -> None:
         gait2392: Path = typer.Option(None, "--gait2392", help="The generic gait2392_thelen2003muscle.osim (with its "
                                       "Geometry/ folder) of opensim-models; default: $PERSONALIZE_GAIT2392, else the "
                                       "shared data folder."),
+        generic: bool = typer.Option(None, "--generic/--no-generic", help="Compare with gait2392 scaled to the same "
+                                     "markers (OpenSim's ScaleTool) and tracked by the same IK: generic/ and "
+                                     "summary.json's generic (default: when gait2392 is found and --muscles is not "
+                                     "none)."),
     ) -> None:
         """Personalised model from MRI and motion capture: fused joints, model.osim, IK of every trial, report."""
         from rich.console import Console
@@ -50,7 +55,7 @@ def register(app: typer.Typer) -> None:
         with StepProgress("run", expected_steps(subject_dir), console) as prog:
             summary = run_subject(subject_dir, out, report=report, progress=prog, overwrite=overwrite,
                                   marker_set=marker_set, full_meshes=full_meshes, muscles=muscles,
-                                  gait2392=gait2392)
+                                  gait2392=gait2392, generic=generic)
         if not quiet:
             _print_summary(summary, out, Console())
 
@@ -85,7 +90,25 @@ def _print_summary(summary: dict, out: Path, console) -> None:
     console.print(t)
     if "errors" in summary:
         console.print(errors_table(summary["errors"]))
+    if summary.get("generic"):
+        console.print(generic_table(summary["generic"]))
     console.print(f"model.osim, report.html, summary.json in {out}/")
+
+
+def generic_table(generic: dict):
+    """rich Table: the personalised model against gait2392 scaled to the same markers (summary.json's generic)."""
+    from rich.table import Table
+
+    truth = generic.get("truth") or {}
+    t = Table(title="Personalised model against scaled gait2392 (static pose; truth errors on a phantom)")
+    for c in ("joint", "centre distance (mm)") + (("error personalised (mm)", "error generic (mm)") if truth else ()):
+        t.add_column(c, justify="left" if c == "joint" else "right")
+    err = truth.get("centre_error_mm", {})
+    for j, v in generic["centres"].items():
+        e = err.get(j)
+        t.add_row(j, f"{v['distance_mm']:.1f}", *((f"{e['personalised']:.1f}", f"{e['generic']:.1f}") if e else
+                                                  (("-", "-") if truth else ())))
+    return t
 
 
 def errors_table(errors: dict):

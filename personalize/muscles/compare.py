@@ -72,14 +72,15 @@ def generic_virtual_markers(generic) -> dict:
     return out
 
 
-def scale_generic(generic, subject_markers: dict, mass: float, work: Path):
+def scale_generic(generic, subject_markers: dict, mass: float, work: Path, measurements: dict | None = None):
     """gait2392 scaled by OpenSim's ScaleTool (ModelScaler) to the subject's virtual markers: opensim.Model.
 
     generic : `GenericModel`; subject_markers : landmark name -> (3,) m (any one frame: only distances count),
     e.g. a phantom's ``truth.json`` ``landmarks_lab_standing_m``; the model's markers are the same landmarks
     detected on gait2392's bones (`generic_virtual_markers`).  Each body is scaled uniformly by the mean ratio of
     its measurement's pair distances (`MEASUREMENTS`, pairs with both markers on both sides only).  `work` :
-    folder for the tool's files (setup, virtual trial, models).
+    folder for the tool's files (setup, virtual trial, models); measurements : measurement -> (marker pairs,
+    bodies), default `MEASUREMENTS`.
     """
     from kinematics.io.opensim_io import import_opensim
 
@@ -103,7 +104,7 @@ def scale_generic(generic, subject_markers: dict, mass: float, work: Path):
            + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(len(labels))) + "\n\n" + rows + "\n")
     (work / "virtual.trc").write_text(trc, encoding="utf-8")
     meas = []
-    for name, (pairs, bodies) in MEASUREMENTS.items():
+    for name, (pairs, bodies) in (MEASUREMENTS if measurements is None else measurements).items():
         pairs = [p for p in pairs if set(p) <= set(labels)]
         if not pairs:
             continue

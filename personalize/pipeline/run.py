@@ -23,7 +23,8 @@ MUSCLES_ENV = "PERSONALIZE_MUSCLES"
 
 def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[[str], None] | None = None,
                 report: bool = True, overwrite: bool = False, marker_set=None, model_check: bool = True,
-                full_meshes: bool = False, muscles: str | None = None, gait2392=None) -> dict:
+                full_meshes: bool = False, muscles: str | None = None, gait2392=None,
+                generic: bool | None = None) -> dict:
     """Run the whole pipeline on one subject folder; outputs are staged into `out`.
 
     Parameters
@@ -44,6 +45,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
         model is found and every side has its pelvis, femur and tibia (``muscles.json`` reports the registration
         and the re-estimated lengths)
     gait2392 : the generic gait2392 model file (None: `personalize.muscles.generic.generic_model_path`'s search)
+    generic : compare with gait2392 scaled to the same markers (`personalize.generic_comparison`; ``generic/`` and
+        summary.json's ``generic``); None: when the generic model is found and the muscles are not ``none``
 
     Returns
     -------
@@ -63,7 +66,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     muscles = _checked_muscles(muscles, gait2392)
     try:
         return _run_subject(subject_dir, out, progress=progress, report=report, marker_set=marker_set,
-                            model_check=model_check, full_meshes=full_meshes, muscles=muscles, gait2392=gait2392)
+                            model_check=model_check, full_meshes=full_meshes, muscles=muscles, gait2392=gait2392,
+                            generic=generic)
     except (InputError, FitError) as exc:
         if report:
             write_refusal_report(Path(out), subject_dir, exc)
@@ -85,7 +89,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
 
 def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker_set=None,
                  model_check: bool = True, full_meshes: bool = False, muscles: str | None = None,
-                 gait2392=None) -> dict:
+                 gait2392=None, generic: bool | None = None) -> dict:
     """`run_subject` without the refusal report."""
     from ..bone_set import write_bone_files
     from ..evaluation.truth import chain_angle_errors, compare_with_truth, truth_in_static_lab
@@ -170,6 +174,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
         ik, summary.ik = solve_trials(pm, inputs, stage, say, summary.notes)
         summary.dynamics_setups = write_dynamics_setups(pm, inputs, stage, ik, say, summary.notes)
         summary.chain_blend, chains = chain_blend(inputs, stage, summary.notes)
+        summary.generic = _generic_step(generic, muscles, gait2392, pm, inputs, ik, stage, say, truth, summary.notes)
         if truth is not None:
             summary.chain_blend.update(chain_angle_errors(inputs, chains))
             rot = [c.name for c in pm.model.coordinates if c.kind == "rotational"]
@@ -181,6 +186,27 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
             write_subject_report(inside(stage, "report.html"), summary, ik, bones)
         write_summary(inside(stage, "summary.json"), summary)
     return summary.to_json()
+
+
+def _generic_step(generic: bool | None, muscles, gait2392, pm, inputs, ik, stage, say, truth, notes) -> dict | None:
+    """summary.json's ``generic``: the model against gait2392 scaled to the same markers
+    (`personalize.generic_comparison`), or None when not asked for (see `run_subject`'s `generic`).  Asked for
+    explicitly, a failure stops the run; by default it is noted and the run goes on without it."""
+    from ..generic_comparison import compare_with_scaled_generic
+    from ..muscles.generic import generic_model_path
+
+    if generic is False or (generic is None and muscles == "none"):
+        return None
+    path = generic_model_path(gait2392, required=bool(generic))
+    if path is None:
+        return None
+    try:
+        return compare_with_scaled_generic(pm, inputs, ik, stage, path, say, truth).to_json()
+    except (InputError, FitError, ValueError, RuntimeError) as exc:
+        if generic:
+            raise InputError(path, f"gait2392 scaled to the subject's markers: {exc}") from None
+        notes.append(f"no comparison with the scaled generic model: {exc}")
+        return None
 
 
 def _checked_muscles(muscles: str | None, gait2392) -> str | None:

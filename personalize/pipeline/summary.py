@@ -37,6 +37,7 @@ class SubjectSummary:
     markers : `pipeline.marker_assignment.MarkerAssignment.to_json`: each static marker's body and why
     joints_on_bones : `pipeline.model.joints_on_bones`
     dynamics_setups : `pipeline.dynamics_setups.write_dynamics_setups` (trials with force plates)
+    generic : `personalize.generic_comparison.GenericComparison.to_json` (gait2392 scaled to the same markers) or None
     """
 
     subject: str
@@ -58,6 +59,7 @@ class SubjectSummary:
     markers: dict | None = None
     joints_on_bones: dict | None = None
     dynamics_setups: dict = field(default_factory=dict)
+    generic: dict | None = None
 
     @property
     def ik_rms_mm(self) -> float:
@@ -115,6 +117,8 @@ class SubjectSummary:
         doc["chain_blend"] = self.chain_blend
         doc["dynamics_setups"] = self.dynamics_setups
         doc["ik_rms_mm"] = self.ik_rms_mm
+        if self.generic is not None:
+            doc["generic"] = self.generic
         if self.truth is not None:
             doc.update(self.truth.to_json())
         return doc

@@ -127,6 +127,8 @@ def write_subject_report(path: Path, summary, ik: dict, bones) -> None:
     fig.tight_layout()
     items.append(Figure(fig, caption=f"{name}: mean marker residual per marker (soft-tissue artefact and noise)"))
     sections.append(Section("Inverse kinematics", items))
+    if summary.generic:
+        sections.append(_generic_section(summary.generic, path.parent, ik, list(est.centres)))
     pics = []
     from ..landmarks.plot import plot_bone
 
@@ -164,3 +166,57 @@ def _refusal_page(stage: Path, subject_dir, kind: str, text: str) -> None:
             "measurements). Every trial must be of the same subject (same pelvis marker distances) and the "
             "labels and markers must share a side."])],
         meta="units: none; frame: none")
+
+
+def _generic_section(generic: dict, folder: Path, ik: dict, sides: list):
+    """The personalised model beside gait2392 scaled to the same markers (summary.json's ``generic``): joint
+    centres, per-trial residuals and angle differences, and the sagittal angles of one gait trial, both models."""
+    from kinematics.io.storage import read_mot
+
+    from .gait_plots import SIDE_COLOURS
+    from .html_report import Figure, Section, Table, new_figure
+
+    truth = generic.get("truth") or {}
+    err = truth.get("centre_error_mm", {})
+    crow = [[j, round(v["distance_mm"], 1), *((round(err[j]["personalised"], 1), round(err[j]["generic"], 1))
+                                               if j in err else (("-", "-") if truth else ()))]
+            for j, v in generic["centres"].items()]
+    head = ["joint", "distance (mm)"] + (["error personalised (mm)", "error generic (mm)"] if truth else [])
+    items = ["gait2392 scaled to this subject's static markers as OpenSim's ScaleTool does (uniform per body, "
+             "bony-landmark marker pairs; factors " + ", ".join(f"{b} {f:.3f}" for b, f in generic["scale_factors"].items())
+             + "), its markers placed on the static pose and every trial tracked by the same IK "
+             f"({generic['model']}). " + " ".join(generic.get("notes", [])),
+             Table(head, crow, caption="Joint centres of the two models in the static pose (model ground)"
+                                       + ("; errors against the phantom truth" if truth else ""))]
+    trow = [[t, round(v["marker_rms_mm"]["personalised"], 2), round(v["marker_rms_mm"]["generic"], 2),
+             ", ".join(f"{c} {d:.1f}" for c, d in v["angle_rms_difference_deg"].items())]
+            for t, v in generic["trials"].items()]
+    if trow:
+        items.append(Table(["trial", "marker RMS personalised (mm)", "marker RMS generic (mm)",
+                            "RMS angle difference (deg)"], trow, caption="The same IK on both models"))
+    if truth.get("angle_rmse_deg"):
+        items.append(Table(["angle", "RMSE personalised (deg)", "RMSE generic (deg)"],
+                           [[c, round(v["personalised"], 2), round(v["generic"], 2)]
+                            for c, v in truth["angle_rmse_deg"].items()], caption="Gait angles against the truth"))
+    name = next((k for k in generic["trials"] if k.startswith("gait")), next(iter(generic["trials"]), None))
+    mot = folder / "generic" / f"{name}.mot" if name else None
+    if mot is not None and mot.is_file() and name in ik:
+        tab, res = read_mot(mot), ik[name]
+        fig = new_figure(12, 3.2)
+        for ax, jn in zip(fig.subplots(1, 3), ("hip_flexion", "knee_flexion", "ankle_angle")):
+            for s in sides:
+                c, colour = f"{jn}_{s}", SIDE_COLOURS.get(s.upper())
+                if c in res.coordinates:
+                    ax.plot(res.time, np.degrees(res.q[:, res.coordinates.index(c)]), color=colour, label=f"{s} personalised")
+                g = c.replace("knee_flexion", "knee_angle")
+                if g in tab.columns:
+                    v = tab.values[:, tab.columns.index(g)] * (-1.0 if jn == "knee_flexion" else 1.0)
+                    ax.plot(tab.time, v if tab.in_degrees else np.degrees(v), color=colour, ls="--",
+                            label=f"{s} scaled gait2392")
+            ax.set_title(jn)
+            ax.set_xlabel("time (s)")
+            ax.set_ylabel("deg")
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        items.append(Figure(fig, caption=f"{name}: sagittal angles, personalised (solid) and scaled gait2392 (dashed)"))
+    return Section("Against gait2392 scaled to the same markers", items)
