@@ -49,8 +49,8 @@ class GenericComparison:
     scale_factors : body -> uniform scale factor of gait2392; measurements : measurement -> marker pairs used
     centres : joint (``hip_r``...) -> {"personalised": (3,), "generic": (3,)} m, model ground, static pose
     trials : trial -> {"marker_rms_mm": {"personalised", "generic"}, "angle_rms_difference_deg": {coordinate: deg}}
-    truth : {"centre_error_mm": {joint: {"personalised", "generic"}}, "angle_rmse_deg": {coordinate: {...}}}
-        on a phantom, else empty; placed : markers placed on the generic model; notes : what was substituted
+    truth : {"centre_error_mm": {joint: {"personalised", "generic"}}, "angle_rmse_deg": {coordinate: {...}},
+        "angle_offset_deg": {...} (the RMSE's constant part)} on a phantom, else empty; placed : markers placed on the generic model; notes : what was substituted
     """
 
     scale_factors: dict
@@ -224,87 +224,103 @@ def compare_with_scaled_generic(pm, inputs, ik: dict, stage: Path, generic_path,
     ----------
     pm : `personalize.model_builder.PersonalModel`; inputs : `personalize.pipeline.SubjectInputs`
     ik : trial -> the personalised model's IK result (`personalize.pipeline.trials.solve_trials`)
-    stage : output folder; writes ``generic/`` (``scaled_generic.osim`` with the placed markers, its ScaleTool
-        files, ``static.mot`` the placement pose, ``<trial>.mot`` per trial in gait2392's coordinates and an OpenSim IK set-up per trial on
-        ``../kinematics/<trial>.trc``)
+    stage : output folder; writes ``generic/``: ``scaled_generic.osim`` with the placed markers, the ScaleTool's
+        files, ``static.mot`` (the placement pose), per trial ``<trial>.mot`` (gait2392's coordinates) and an
+        OpenSim IK set-up on ``../kinematics/<trial>.trc``
     generic_path : gait2392 (.osim with its ``Geometry``); truth : `evaluation.truth.truth_in_static_lab` or None
     """
-    from kinematics.algorithms.ik import solve_ik
-    from kinematics.io.ik_setup import CoordinateTask, write_ik_setup
     from kinematics.io.marker_sets import canonical_names, preset
-    from kinematics.io.opensim_io import import_opensim, load_osim
     from kinematics.io.storage import write_mot
 
     from .model_builder import trial_in_ground
-    from .muscles import compare as mcompare
     from .muscles.generic import load_generic_model
-    from .pipeline.trials import OPENSIM_IK_ACCURACY
 
-    osim = import_opensim()
     work = inside(stage, GENERIC_DIR)
     work.mkdir(parents=True, exist_ok=True)
     static = trial_in_ground(pm, inputs.static)
-    internal = canonical_names(inputs.marker_set or preset("pig"), static.names)
-    lm = _static_landmarks(static, internal)
+    lm = _static_landmarks(static, canonical_names(inputs.marker_set or preset("pig"), static.names))
     generic = load_generic_model(generic_path)
-    virtual = mcompare.generic_virtual_markers(generic)
-    measurements, notes = _measurement_set(set(lm) & set(virtual))
-    if not measurements:
-        raise ValueError("no bony-landmark marker pair to scale gait2392 with")
     say("generic: gait2392 scaled to the static markers (ScaleTool)")
-    mass = float(getattr(inputs.subject, "mass", None) or 75.0)
-    mcompare.scale_generic(generic, lm, mass, work, measurements=measurements)
-    scaled_path = work / "gait2392_scaled.osim"
-    g_model = load_osim(scaled_path)
-    factors = _scale_factors(g_model, virtual, measurements)
-    # placement: IK of the landmark markers on the static trial's (one frame: their mean)
-    from kinematics.io.markers import MarkerTrial
-
-    g_lm = g_model.replace(markers=_placement_markers(generic.landmarks, factors, set(lm)))
-    names = g_lm.marker_names
-    lt = MarkerTrial(names, np.array([[lm[n] for n in names]]), static.rate, np.array([0.0]), source="static")
-    # subtalar and mtp held at zero, as OpenSim's example placement does (weight 1000): HEE alone leaves them free
-    held = [CoordinateTask(c, 1000.0, 0.0) for c in g_lm.coordinate_names if c.startswith(("subtalar_angle", "mtp_angle"))]
-    q_static = solve_ik(g_lm, lt, coordinate_tasks=held, check_units=False).q[0]
-    bodies = {m.name: m.body for m in pm.model.markers}
-    placed_path = work / "scaled_generic.osim"
-    placed = _placed_markers(osim, scaled_path, g_model, q_static, static, bodies, placed_path)
-    g_placed = load_osim(placed_path)
+    g_model, factors, measurements, notes = _scaled(generic, lm, float(getattr(inputs.subject, "mass", None) or 75.0),
+                                                    work)
+    g_placed, q0 = _placed(g_model, generic.landmarks, factors, lm, static,
+                           {m.name: m.body for m in pm.model.markers}, work)
     rot = [c.name for c in g_placed.coordinates if c.kind == "rotational"]
-    q0 = np.array(g_placed.default_q, float)
-    ix = {c: i for i, c in enumerate(g_placed.coordinate_names)}
-    for i, c in enumerate(g_model.coordinate_names):
-        if c in ix:
-            q0[ix[c]] = q_static[i]
     write_mot(inside(work, "static.mot"), g_placed.coordinate_names, np.array([0.0]), q0[None], rotational=rot,
               name="static pose of the scaled gait2392 (marker placement)")
     sides = tuple(inputs.sides)
     cp, cg = _joint_centres(pm.model, pm.standing_q, sides), _joint_centres(g_placed, q0, sides)
     out = GenericComparison(factors, {k: [list(p) for p in v[0]] for k, v in measurements.items()},
                             {j: {"personalised": cp[j], "generic": cg[j]} for j in cp if j in cg},
-                            placed=placed, notes=notes)
+                            placed=g_placed.marker_names, notes=notes)
     g_results = {}
     for name, res in ik.items():
         if name == "static":
             continue
         say(f"generic: IK {name}")
-        trial = trial_in_ground(pm, inputs.trials[name])
-        w = {m: 1.0 for m in res.markers if m in g_placed.marker_names}
-        gres = solve_ik(g_placed, trial, marker_weights=w, q0=q0)
-        write_mot(inside(work, f"{name}.mot"), g_placed.coordinate_names, gres.time, gres.q, rotational=rot,
-                  name=f"IK {name} (scaled gait2392)")
-        write_ik_setup(inside(work, f"{name}_ik_setup.xml"), model_file="scaled_generic.osim",
-                       marker_file=f"../kinematics/{name}.trc", output_motion_file=f"{name}_opensim_ik.mot",
-                       marker_weights=w, time_range=(float(gres.time[0]), float(gres.time[-1])),
-                       accuracy=OPENSIM_IK_ACCURACY, name=f"{name}_generic_ik")
-        g_results[name] = _as_flexion(gres)
+        g_results[name] = _tracked(g_placed, q0, trial_in_ground(pm, inputs.trials[name]), res.markers, work, name)
         out.trials[name] = {
             "marker_rms_mm": {"personalised": 1e3 * float(np.nanmean(res.rms)),
-                              "generic": 1e3 * float(np.nanmean(gres.rms))},
+                              "generic": 1e3 * float(np.nanmean(g_results[name].rms))},
             "angle_rms_difference_deg": _angle_rms_difference(res, g_results[name], sides)}
     if truth is not None:
         out.truth = _against_truth(inputs, pm, truth, ik, g_results, out.centres)
     return out
+
+
+def _scaled(generic, lm: dict, mass: float, work: Path):
+    """Step 1: (scaled model as a `kinematics` Model, body -> factor, measurements used, notes)."""
+    from kinematics.io.opensim_io import load_osim
+
+    from .muscles import compare as mcompare
+
+    virtual = mcompare.generic_virtual_markers(generic)
+    measurements, notes = _measurement_set(set(lm) & set(virtual))
+    if not measurements:
+        raise ValueError("no bony-landmark marker pair to scale gait2392 with")
+    mcompare.scale_generic(generic, lm, mass, work, measurements=measurements)
+    g_model = load_osim(work / "gait2392_scaled.osim")
+    return g_model, _scale_factors(g_model, virtual, measurements), measurements, notes
+
+
+def _placed(g_model, landmarks: dict, factors: dict, lm: dict, static, bodies: dict, work: Path):
+    """Step 2: the scaled model posed on the static landmarks, its markers placed and written
+    (``scaled_generic.osim``): (placed model, static pose)."""
+    from kinematics.algorithms.ik import solve_ik
+    from kinematics.io.ik_setup import CoordinateTask
+    from kinematics.io.markers import MarkerTrial
+    from kinematics.io.opensim_io import import_opensim, load_osim
+
+    g_lm = g_model.replace(markers=_placement_markers(landmarks, factors, set(lm)))
+    names = g_lm.marker_names
+    lt = MarkerTrial(names, np.array([[lm[n] for n in names]]), static.rate, np.array([0.0]), source="static")
+    # subtalar and mtp held at zero, as OpenSim's example placement does (weight 1000): HEE alone leaves them free
+    held = [CoordinateTask(c, 1000.0, 0.0) for c in g_lm.coordinate_names if c.startswith(("subtalar_angle", "mtp_angle"))]
+    q = solve_ik(g_lm, lt, coordinate_tasks=held, check_units=False).q[0]
+    path = work / "scaled_generic.osim"
+    _placed_markers(import_opensim(), work / "gait2392_scaled.osim", g_lm, q, static, bodies, path)
+    return load_osim(path), q
+
+
+def _tracked(g_placed, q0, trial, markers, work: Path, name: str):
+    """Step 3: IK of one trial (model ground) on the placed model with the personalised IK's `markers`, weight 1;
+    writes ``<name>.mot`` and its OpenSim IK set-up; returns the result with ``knee_flexion`` (`_as_flexion`)."""
+    from kinematics.algorithms.ik import solve_ik
+    from kinematics.io.ik_setup import write_ik_setup
+    from kinematics.io.storage import write_mot
+
+    from .pipeline.trials import OPENSIM_IK_ACCURACY
+
+    w = {m: 1.0 for m in markers if m in g_placed.marker_names}
+    res = solve_ik(g_placed, trial, marker_weights=w, q0=q0)
+    rot = [c.name for c in g_placed.coordinates if c.kind == "rotational"]
+    write_mot(inside(work, f"{name}.mot"), g_placed.coordinate_names, res.time, res.q, rotational=rot,
+              name=f"IK {name} (scaled gait2392)")
+    write_ik_setup(inside(work, f"{name}_ik_setup.xml"), model_file="scaled_generic.osim",
+                   marker_file=f"../kinematics/{name}.trc", output_motion_file=f"{name}_opensim_ik.mot",
+                   marker_weights=w, time_range=(float(res.time[0]), float(res.time[-1])),
+                   accuracy=OPENSIM_IK_ACCURACY, name=f"{name}_generic_ik")
+    return _as_flexion(res)
 
 
 def _against_truth(inputs, pm, truth: dict, ik: dict, generic_ik: dict, centres: dict) -> dict:
@@ -321,7 +337,8 @@ def _against_truth(inputs, pm, truth: dict, ik: dict, generic_ik: dict, centres:
             err[j] = {k: 1e3 * float(np.linalg.norm(np.asarray(c[k], float) - t)) for k in ("personalised", "generic")}
     rot_p = [c.name for c in pm.model.coordinates if c.kind == "rotational"]
     rot_g = sorted({c for r in generic_ik.values() for c in r.coordinates})
-    a_p, _ = angle_errors_against_truth(inputs, ik, rot_p)
-    a_g, _ = angle_errors_against_truth(inputs, generic_ik, rot_g)
+    (a_p, o_p), (a_g, o_g) = (angle_errors_against_truth(inputs, r, rot) for r, rot in ((ik, rot_p), (generic_ik, rot_g)))
     ang = {c: {"personalised": a_p[c], "generic": a_g[c]} for c in a_p if c in a_g}
-    return {"centre_error_mm": err, "angle_rmse_deg": ang}
+    # the constant part of each RMSE (a model's joint-frame convention, e.g. gait2392's pelvis frame against ISB's)
+    off = {c: {"personalised": o_p[c], "generic": o_g[c]} for c in ang}
+    return {"centre_error_mm": err, "angle_rmse_deg": ang, "angle_offset_deg": off}

@@ -64,6 +64,30 @@ def test_pipeline_muscles_match_scaled_gait2392(shared_data, opensim, tmp_path):
     tib = rep["bodies"]["tibia_r"]
     assert tib["twist"] is not None and abs(tib["twist"]["deg_between_joints"]) > 10.0   # ICL's tibial torsion
     assert tib["landmark_residual_mm"]["TTB"] < 10.0
+    _check_moment_arms_against_opensim(m)
+
+
+def _check_moment_arms_against_opensim(model):
+    """The benchmark's moment arms, -dL/dq by central differences with the knee's coupled translations following
+    (`compare._moment_arms`), are OpenSim's own `Muscle.computeMomentArm` on the personalised model."""
+    from personalize.muscles.calibration import mtu_lengths
+    from personalize.muscles.compare import _H, _moment_arms
+    from personalize.muscles.poses import _couplers, set_pose
+
+    state = model.initSystem()
+    mus = ["vas_med_r", "rect_fem_r", "bifemsh_r", "semimem_r", "lat_gas_r", "glut_max1_r", "iliacus_r", "soleus_r",
+           "tib_ant_r", "sar_r", "add_long_r", "grac_r"]
+    worst = 0.0
+    for coord, values in (("knee_flexion_r", (0.2, 0.8, 1.3)), ("hip_flexion_r", (-0.2, 0.3, 0.9)),
+                          ("ankle_angle_r", (-0.2, 0.1))):
+        for v in values:
+            ours = _moment_arms(mtu_lengths(model, mus, [{coord: v}, {coord: v - _H}, {coord: v + _H}], state))[0]
+            set_pose(model, state, {coord: v}, _couplers(model))
+            c = model.getCoordinateSet().get(coord)
+            theirs = np.array([model.getMuscles().get(n).computeMomentArm(state, c) for n in mus])
+            assert np.max(np.abs(theirs)) > 0.03
+            worst = max(worst, float(np.max(np.abs(ours - theirs))))
+    assert worst < 5e-5
 
 
 def test_default_muscles_that_fail_leave_the_model_without_them(shared_data, opensim, monkeypatch, tmp_path):
