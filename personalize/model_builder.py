@@ -136,6 +136,8 @@ class SideParameters:
         knee translation at the standing pose (m; zero when the fused knee centre is the standing one)
     centre_cov : {"hip" | "knee" | "ankle": (3, 3) m²}, the stated covariance of each centre
     axis_sd_deg : {"knee" | "ankle": deg}, the 1-sd angle of each axis; both written to model.json
+    patella : `personalize.patellofemoral.PatellaGeometry` (static lab) for a patellofemoral joint, or None (the
+        patella then rides on the femur)
     """
 
     hip: np.ndarray
@@ -150,6 +152,7 @@ class SideParameters:
     knee_law: CorrelativeLaw | None = None
     centre_cov: dict = field(default_factory=dict)
     axis_sd_deg: dict = field(default_factory=dict)
+    patella: object = None
 
 
 @dataclass(frozen=True)
@@ -190,6 +193,9 @@ class PersonalModel:
     knee_laws : dict side -> CorrelativeLaw
     G : (3, 3) ground from internal, x_ground = G x_internal (`GROUND_FROM_INTERNAL`); map every marker trial
         of the internal frame by it (`trial_in_ground`) before IK on `model`
+    patellar_tracks : side -> `personalize.patellofemoral.PatellarTrack` of the sides with a patellofemoral joint
+        (their ``patella_<s>`` body frame is the femur's knee frame at the MRI's patella pose, the frame its mesh is
+        written in)
     """
 
     model: Model
@@ -198,6 +204,7 @@ class PersonalModel:
     parameters: SubjectParameters
     knee_laws: dict
     G: np.ndarray = field(default_factory=lambda: GROUND_FROM_INTERNAL.copy())
+    patellar_tracks: dict = field(default_factory=dict)
 
 
 def trial_in_ground(pm: PersonalModel, trial):
@@ -355,6 +362,13 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
     for s in p.sides:
         c = laws[s].to_coupling(base.coordinate_names)
         coupling = c if coupling is None else coupling.stack(c)
+    tracks = {}
+    for s, sp in p.sides.items():
+        if sp.patella is not None:
+            tracks[s] = _patellar_track(base, s, sp, knee_frames[s], laws[s], knee_q[s], frames)
+    tracks = {s: t for s, t in tracks.items() if t is not None}
+    if tracks:
+        base, coupling = _with_patellae(base, coupling, tracks, knee_frames, p, frames, offset)
     model = base.with_couplings(coupling.over(base.coordinate_names)) if coupling is not None else base
     q0 = np.zeros(model.n_q)
     ix = model.coordinate_index
@@ -370,11 +384,67 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
         q0[[ix(sided(c, s)) for c in KNEE_ROTATIONS]] = knee_q[s]
         law = laws[s]
         q0[[ix(n) for n in law.dependent]] = law.predict(knee_q[s][None])[0]
+        if s in tracks:
+            q0[ix(f"{sided('knee_flexion', s)}_beta")] = knee_q[s][0]
     # default pose = static pose (IK's cold start and OpenSim's default state)
     coords_def = tuple(Coordinate(c.name, c.kind, float(q0[i]), c.range, c.locked, c.clamped)
                        for i, c in enumerate(model.coordinates))
     model = model.replace(coordinates=coords_def)
-    return PersonalModel(model, q0, frames, p, laws, G.copy())
+    return PersonalModel(model, q0, frames, p, laws, G.copy(), tracks)
+
+
+#: kg, the patella body's mass (Rajagopal et al. 2016's patella: about 0.1 kg); inertia of a 45 x 45 x 22 mm box
+PATELLA_MASS = 0.1
+
+
+def _patellar_track(base: Model, s: str, sp: SideParameters, R_k: np.ndarray, law, knee_q: np.ndarray, frames: dict):
+    """`personalize.patellofemoral.patellar_track` of side `s` on the model's knee: the tibial tuberosity moved
+    by the knee joint (flexion swept, adduction and rotation at their standing values, translations by `law`)."""
+    from .patellofemoral import patellar_track
+
+    geo = sp.patella
+    K = np.asarray(sp.knee, float)
+    jt = base.joint(f"knee_{s}")
+    o_t, R_t = frames[f"tibia_{s}"]
+    tt_body = R_t.T @ (np.asarray(geo.tuberosity_on_tibia, float) - o_t)
+    tt_m = jt.child_offset.rotation.T @ (tt_body - jt.child_offset.translation)
+
+    def tuberosity_at(q: float) -> np.ndarray:
+        ang = np.array([q, knee_q[1], knee_q[2]])
+        R, t = jt.transform(np.concatenate([ang, law.predict(ang[None])[0]])[None])
+        return R[0] @ tt_m + t[0]
+
+    return patellar_track(geo, (K, R_k), tuberosity_at, start_deg=float(np.degrees(knee_q[0])))
+
+
+def _with_patellae(base: Model, coupling, tracks: dict, knee_frames: dict, p, frames: dict, offset):
+    """`base` with, per side in `tracks`, a patella body on a CustomJoint ``patellofemoral_<s>`` from the femur
+    whose coordinate ``knee_flexion_<s>_beta`` equals knee flexion (one coupling row): rotation about the knee
+    frame's Z and the joint frame's x, y translation, SimmSplines of it (`personalize.patellofemoral`)."""
+    from kinematics.multibody.coupling import LinearCoupling
+    from kinematics.multibody.functions import SimmSpline
+
+    bodies, joints, coords = list(base.bodies), list(base.joints), list(base.coordinates)
+    for s, tr in tracks.items():
+        K = np.asarray(p.sides[s].knee, float)
+        frames[f"patella_{s}"] = (K, knee_frames[s])
+        flex = sided("knee_flexion", s)
+        beta = f"{flex}_beta"
+        box = np.array([0.045, 0.045, 0.022])
+        inertia = PATELLA_MASS / 12.0 * np.diag([box[1] ** 2 + box[2] ** 2, box[0] ** 2 + box[2] ** 2,
+                                                box[0] ** 2 + box[1] ** 2])
+        bodies.append(Body(f"patella_{s}", PATELLA_MASS, np.asarray(tr.centre, float), inertia))
+        spline = lambda y: SimmSpline(tr.flexion, y)            # noqa: E731
+        joints.append(CustomJoint(
+            f"patellofemoral_{s}", f"femur_{s}", f"patella_{s}", (beta,), offset(f"femur_{s}", K, knee_frames[s]),
+            Transform(), rotations=(TransformAxis(_Z, spline(tr.rotation), (beta,)),),
+            translations=(TransformAxis(_X, spline(tr.translation[:, 0]), (beta,)),
+                          TransformAxis(_Y, spline(tr.translation[:, 1]), (beta,))), kind_name="custom"))
+        d = coordinate_def("knee_flexion")
+        coords.append(Coordinate(beta, "rotational", range=d.range))
+        row = LinearCoupling((beta, flex), np.array([[1.0, -1.0]]), np.zeros(1), (beta,))
+        coupling = row if coupling is None else coupling.stack(row)
+    return base.replace(bodies=tuple(bodies), joints=tuple(joints), coordinates=tuple(coords)), coupling
 
 
 # --------------------------------------------------------------------------- export
@@ -569,6 +639,10 @@ def model_json(pm: PersonalModel, mesh_files: dict | None = None) -> dict:
         "markers": [{"name": mk.name, "body": mk.body, "offset": mk.offset.tolist()} for mk in m.markers],
         "mesh_files": {bone: mf.to_json() for bone, mf in sorted((mesh_files or {}).items())},
         "knee_laws": {s: law.to_json() for s, law in pm.knee_laws.items()},
+        "patellofemoral": {s: {**t.to_json(), "joint": f"patellofemoral_{s}", "coordinate": f"knee_flexion_{s}_beta",
+                               "note": "patella_<s>'s static_origin / static_rotation: the knee frame, its mesh's "
+                                       "frame (the MRI patella pose); the joint moves it with knee flexion"}
+                           for s, t in pm.patellar_tracks.items()},
         "uncertainty": _uncertainty_json(pm.parameters),
         "sources": pm.parameters.sources,
         "standing_q": dict(zip(m.coordinate_names, pm.standing_q.tolist())),

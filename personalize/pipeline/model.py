@@ -9,15 +9,16 @@ from .inputs import SubjectInputs
 from .joint_estimates import JointEstimates
 from .marker_assignment import MarkerAssignment
 
-__all__ = ["subject_parameters", "bone_meshes_lab", "bone_landmarks_lab", "segment_placements", "joints_on_bones", "pelvis_bone_frame"]
+__all__ = ["subject_parameters", "patella_geometries", "bone_meshes_lab", "bone_landmarks_lab", "segment_placements", "joints_on_bones", "pelvis_bone_frame"]
 
 
 def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict,
-                       markers: MarkerAssignment | None = None) -> SubjectParameters:
+                       markers: MarkerAssignment | None = None, patellae: dict | None = None) -> SubjectParameters:
     """The model builder's input: fused centres and axes with their covariances, static markers, provenance.
 
     `static` : label -> `Gaussian` static marker positions (the trial's own labels); `markers`: their bodies
-    (`marker_assignment.assign_markers`), None: the Plug-in-Gait name table of the builder.
+    (`marker_assignment.assign_markers`), None: the Plug-in-Gait name table of the builder; `patellae` : side ->
+    `personalize.patellofemoral.PatellaGeometry` (`patella_geometries`) for a patellofemoral joint.
     """
 
     sides = {}
@@ -28,7 +29,7 @@ def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict,
             ankle=c["ankle"].fused.mean, ankle_axis=a["ankle"].fused.direction,
             subtalar=p["subtalar"].point, subtalar_axis=p["subtalar"].direction, mtp=p["mtp"].point,
             mtp_axis=p["mtp"].direction, centre_cov={j: c[j].fused.cov for j in ("hip", "knee", "ankle")},
-            axis_sd_deg={j: a[j].fused.sd_deg for j in ("knee", "ankle")})
+            axis_sd_deg={j: a[j].fused.sd_deg for j in ("knee", "ankle")}, patella=(patellae or {}).get(s))
     subj = inputs.subject
     mass = float(subj.mass) if subj.mass else 70.0
     height = float(subj.height) if subj.height else 1.75
@@ -56,6 +57,31 @@ def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict,
                              marker_bodies=None if markers is None else dict(markers.bodies))
 
 
+
+
+def patella_geometries(surfaces: dict, landmarks, placements: dict, sides) -> dict:
+    """side -> `personalize.patellofemoral.PatellaGeometry` in the static lab frame: femur, patella and the MRI's
+    tibial tuberosity moved with the femur's placement (their MRI relation), the tuberosity also with the shank's.
+    Sides without a patella, a confidently oriented one (`FLAG_LOW_CONFIDENCE`) or a tuberosity are left out."""
+    from ..landmarks.common import FLAG_LOW_CONFIDENCE
+    from ..patellofemoral import PatellaGeometry
+
+    out = {}
+    for s in sides:
+        pat, tib = landmarks.bones.get(f"patella_{s}"), landmarks.bones.get(f"tibia_{s}")
+        tt = None if tib is None else tib.landmarks.get(f"{s.upper()}TTB")
+        T_f, T_t = placements.get(f"femur_{s}"), placements.get(f"tibia_{s}")
+        if (pat is None or tt is None or T_f is None or T_t is None or FLAG_LOW_CONFIDENCE in pat.flags
+                or "articular" not in pat.frames or f"femur_{s}" not in surfaces or f"patella_{s}" not in surfaces):
+            continue
+        move = lambda T, x: np.asarray(x, float) @ T[:3, :3].T + T[:3, 3]      # noqa: E731
+        fm, pm_ = surfaces[f"femur_{s}"].mesh, surfaces[f"patella_{s}"].mesh
+        R = T_f[:3, :3]
+        out[s] = PatellaGeometry(move(T_f, fm.vertices), np.asarray(fm.vertex_normals) @ R.T,
+                                 move(T_f, pm_.vertices), np.asarray(pm_.vertex_normals) @ R.T,
+                                 move(T_f, pat.landmarks["patella_centre"].position),
+                                 R @ pat.frames["articular"]["rotation"], move(T_f, tt.position), move(T_t, tt.position))
+    return out
 
 
 def _placed_on_joints(reg, mri_prox, lab_prox, mri_dist=None, lab_dist=None) -> np.ndarray:

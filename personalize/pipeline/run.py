@@ -95,9 +95,11 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     from ..evaluation.truth import chain_angle_errors, compare_with_truth, truth_in_static_lab
     from ..model_builder import MODEL_MESH_MAX_FACES, save_model_json, save_model_osim, write_meshes
     from ..outputs import replaced_dir
+    from ..patellofemoral import TENDON_RANGE as PATELLA_TENDON_RANGE
     from ..parameter_fusion import fuse_segment_lengths
     from .marker_assignment import model_markers
-    from .model import bone_landmarks_lab, bone_meshes_lab, joints_on_bones, pelvis_bone_frame, segment_placements
+    from .model import (bone_landmarks_lab, bone_meshes_lab, joints_on_bones, patella_geometries, pelvis_bone_frame,
+                        segment_placements)
     from .model_checks import bone_segment_lengths, check_model
     from .dynamics_setups import write_dynamics_setups
     from .trials import chain_blend, solve_trials
@@ -120,12 +122,19 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     meshes_lab = bone_meshes_lab(bones.surfaces, placements, inputs.sides)
     markers = model_markers(inputs, meshes_lab)
     say("building the model")
+    patellae = patella_geometries(bones.surfaces, bones.landmarks, placements, inputs.sides)
     try:
-        pm, intercepts = build_model(inputs, est, joints, say, markers)
+        pm, intercepts = build_model(inputs, est, joints, say, markers, patellae)
     except InputError as exc:
         if exc.source != "model":
             raise
         raise InputError(inputs.folder, f"model refused: {exc.problem}") from None   # name the subject, not "model"
+    for s in patellae:
+        if s in pm.patellar_tracks:
+            meshes_lab[f"patella_{s}"] = (meshes_lab[f"patella_{s}"][0], f"patella_{s}")
+        else:
+            est.notes.append(f"patella_{s} rides on the femur: no patellar path on these bones (tendon length outside "
+                             f"{', '.join(f'{1e3 * v:.0f}' for v in PATELLA_TENDON_RANGE)} mm or no converged pose)")
     centres = ("hip", "knee", "ankle")
     lengths = fuse_segment_lengths({f"{j}_{s}": joints[f"{j}_{s}"].centre for s in inputs.sides for j in centres},
                                    {f"{j}_{s}": est.centres[s][j].motion for s in inputs.sides for j in centres},
@@ -311,19 +320,21 @@ def _subject_measurements(inputs: SubjectInputs, bones) -> tuple[object, dict]:
     return measure_from_bones(given, points, source=inputs.folder / "subject.json")
 
 
-def build_model(inputs: SubjectInputs, est, joints: dict, say, markers=None) -> tuple[object, dict]:
+def build_model(inputs: SubjectInputs, est, joints: dict, say, markers=None, patellae=None) -> tuple[object, dict]:
     """The personalised model (`personalize.model_builder.PersonalModel`) with fitted and fused knee laws.
 
     Built once from the joint estimates to fit the knee laws (`knee_law.fit_knee_laws` on the
     non-functional trials), then again with the laws.  Returns the model and side -> `KneeIntercept`.
-    `markers` : the static markers' bodies (`marker_assignment.MarkerAssignment`), None: Plug-in-Gait names.
+    `markers` : the static markers' bodies (`marker_assignment.MarkerAssignment`), None: Plug-in-Gait names;
+    `patellae` : side -> `personalize.patellofemoral.PatellaGeometry` (`model.patella_geometries`), the sides that
+    get a patellofemoral joint.
     """
     from ..model_builder import build_personal_model
     from ..registration import static_marker_positions
     from .knee_law import fit_knee_laws, fuse_knee_intercepts
     from .model import subject_parameters
 
-    params = subject_parameters(inputs, est, static_marker_positions(inputs.static), markers)
+    params = subject_parameters(inputs, est, static_marker_positions(inputs.static), markers, patellae)
     pm = build_personal_model(params)
     standing: dict = {}
     laws = fit_knee_laws(pm, [t for k, t in sorted(inputs.trials.items()) if not k.startswith("functional")], say,
