@@ -95,11 +95,17 @@ class PatellarTrack:
         """Patellar flexion per degree of knee flexion over the converged range (slope of a line fit)."""
         return float(-np.polyfit(self.flexion, self.rotation, 1)[0])
 
+    def centre_path(self) -> np.ndarray:
+        """(K, 2) m, the patella's centre in F's sagittal plane (x anterior, y proximal) at each sample."""
+        return np.array([(_rz(a) @ self.centre)[:2] + t for a, t in zip(self.rotation, self.translation)])
+
     def to_json(self) -> dict:
         return {"frame": "femur knee frame (origin knee centre, Z flexion axis to the right, Y proximal, X anterior)",
                 "flexion_deg": np.degrees(self.flexion).round(2).tolist(),
                 "patellar_flexion_deg": (-np.degrees(self.rotation)).round(2).tolist(),
                 "translation_mm": (1e3 * self.translation).round(2).tolist(),
+                "centre_mm": (1e3 * self.centre).round(2).tolist(),
+                "centre_path_mm": (1e3 * self.centre_path()).round(2).tolist(),
                 "tendon_length_mm": round(1e3 * self.tendon_length, 2), "clearance_mm": round(1e3 * self.clearance, 2),
                 "patellar_flexion_per_knee_flexion": round(self.patellar_flexion_ratio, 3),
                 "max_residual": float(np.max(self.residual)), "method": "planar three-force patella on the "

@@ -145,6 +145,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
                              inputs.functional, bones.dropped, notes, pm.parameters.sources, est, lengths, intercepts,
                              lab=inputs.lab.to_json(), measurements=_measurements_json(inputs))
     summary.markers = markers.to_json()
+    summary.patellofemoral = {s: t.to_json() for s, t in pm.patellar_tracks.items()}
     summary.joints_on_bones = joints_on_bones(pm, placements, inputs.sides, joints,
                                               ((inputs.truth or {}).get("joints") or {}).get("joints"))
     say("checking the model against the bones")

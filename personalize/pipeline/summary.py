@@ -38,6 +38,7 @@ class SubjectSummary:
     joints_on_bones : `pipeline.model.joints_on_bones`
     dynamics_setups : `pipeline.dynamics_setups.write_dynamics_setups` (trials with force plates)
     generic : `personalize.generic_comparison.GenericComparison.to_json` (gait2392 scaled to the same markers) or None
+    patellofemoral : side -> `personalize.patellofemoral.PatellarTrack.to_json` (the sides with the joint)
     """
 
     subject: str
@@ -60,6 +61,7 @@ class SubjectSummary:
     joints_on_bones: dict | None = None
     dynamics_setups: dict = field(default_factory=dict)
     generic: dict | None = None
+    patellofemoral: dict = field(default_factory=dict)
 
     @property
     def ik_rms_mm(self) -> float:
@@ -119,6 +121,8 @@ class SubjectSummary:
         doc["ik_rms_mm"] = self.ik_rms_mm
         if self.generic is not None:
             doc["generic"] = self.generic
+        if self.patellofemoral:
+            doc["patellofemoral"] = self.patellofemoral
         if self.truth is not None:
             doc.update(self.truth.to_json())
         return doc

@@ -129,6 +129,8 @@ def write_subject_report(path: Path, summary, ik: dict, bones) -> None:
     sections.append(Section("Inverse kinematics", items))
     if summary.generic:
         sections.append(_generic_section(summary.generic, path.parent, ik, list(est.centres)))
+    if summary.patellofemoral:
+        sections.append(_patella_section(summary.patellofemoral))
     pics = []
     from ..landmarks.plot import plot_bone
 
@@ -220,3 +222,40 @@ def _generic_section(generic: dict, folder: Path, ik: dict, sides: list):
         fig.tight_layout()
         items.append(Figure(fig, caption=f"{name}: sagittal angles, personalised (solid) and scaled gait2392 (dashed)"))
     return Section("Against gait2392 scaled to the same markers", items)
+
+
+def _patella_section(tracks: dict):
+    """The patellofemoral joint: patellar flexion against knee flexion and the patella's sagittal path, per side."""
+    from .gait_plots import SIDE_COLOURS
+    from .html_report import Figure, Section, new_figure
+
+    fig = new_figure(10, 3.6)
+    a1, a2 = fig.subplots(1, 2)
+    for s, t in tracks.items():
+        colour = SIDE_COLOURS.get(s.upper())
+        a1.plot(t["flexion_deg"], t["patellar_flexion_deg"], color=colour,
+                label=f"{s}: {t['patellar_flexion_per_knee_flexion']:.2f} deg/deg")
+        xy = np.asarray(t["centre_path_mm"], float)
+        a2.plot(xy[:, 0], xy[:, 1], color=colour, marker=".", label=s)
+    q = np.array([0.0, 120.0])
+    first = next(iter(tracks.values()))
+    y0 = float(np.interp(0.0, first["flexion_deg"], first["patellar_flexion_deg"]))
+    a1.fill_between(q, y0 + 0.6 * q, y0 + 0.7 * q, color="0.85", label="in vivo slope: 30-40 % lag")
+    a1.set_xlabel("knee flexion (deg)")
+    a1.set_ylabel("patellar flexion (deg)")
+    a1.legend(fontsize=7)
+    a2.set_xlabel("anterior (mm, knee frame)")
+    a2.set_ylabel("proximal (mm)")
+    a2.set_aspect("equal")
+    a2.legend(fontsize=7)
+    fig.tight_layout()
+    return Section("Patellofemoral joint", [
+        "The patella moves on the subject's femur as a planar three-force member (Yamaguchi & Zajac 1989): the "
+        "patellar tendon keeps its MRI length, the articular surface its MRI clearance, and quadriceps, tendon and "
+        "contact forces balance. Converged over knee flexion "
+        + ", ".join(f"{s} {t['flexion_deg'][0]:.0f} to {t['flexion_deg'][-1]:.0f} deg (tendon {t['tendon_length_mm']:.1f} mm)"
+                    for s, t in tracks.items())
+        + "; linear beyond. In the model: joint patellofemoral_<s>, coordinate knee_flexion_<s>_beta coupled to knee "
+          f"flexion ({first['frame']}).",
+        Figure(fig, caption="Patellar flexion against knee flexion (grey: the in-vivo range) and the patella "
+                            "centre's path in the femur's knee frame")])
