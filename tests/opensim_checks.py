@@ -38,3 +38,19 @@ def check_so_reproduces_id(model_json: dict, id_table, so_table) -> dict:
         assert d < SO_ABS_TOL + SO_REL_TOL * np.abs(expected).max(), (a, d, np.abs(expected).max())
         diffs[a] = d
     return diffs
+
+
+def opensim_ik_difference_deg(setup, ours_mot, results_dir) -> tuple[float, list]:
+    """OpenSim's IK tool run on `setup` against personalize's ``.mot`` of the same trial: the largest difference of
+    any rotational coordinate both have (deg) and OpenSim's coordinate names."""
+    from kinematics.io.opensim_io import run_opensim_ik_tool
+    from kinematics.io.storage import read_mot
+
+    ours = read_mot(ours_mot)
+    theirs = run_opensim_ik_tool(setup, results_dir)
+    worst = 0.0
+    for i, c in enumerate(theirs["coordinates"]):
+        if c in ours.columns and not c.endswith(("_tx", "_ty", "_tz")):
+            q = np.interp(ours.time, theirs["time"], np.degrees(theirs["q"][:, i]))
+            worst = max(worst, float(np.nanmax(np.abs(ours.values[:, ours.columns.index(c)] - q))))
+    return worst, list(theirs["coordinates"])

@@ -95,7 +95,6 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     from ..evaluation.truth import chain_angle_errors, compare_with_truth, truth_in_static_lab
     from ..model_builder import MODEL_MESH_MAX_FACES, save_model_json, save_model_osim, write_meshes
     from ..outputs import replaced_dir
-    from ..patellofemoral import TENDON_RANGE as PATELLA_TENDON_RANGE
     from ..parameter_fusion import fuse_segment_lengths
     from .marker_assignment import model_markers
     from .model import (bone_landmarks_lab, bone_meshes_lab, joints_on_bones, patella_geometries, pelvis_bone_frame,
@@ -129,12 +128,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
         if exc.source != "model":
             raise
         raise InputError(inputs.folder, f"model refused: {exc.problem}") from None   # name the subject, not "model"
-    for s in patellae:
-        if s in pm.patellar_tracks:
-            meshes_lab[f"patella_{s}"] = (meshes_lab[f"patella_{s}"][0], f"patella_{s}")
-        else:
-            est.notes.append(f"patella_{s} rides on the femur: no patellar path on these bones (tendon length outside "
-                             f"{', '.join(f'{1e3 * v:.0f}' for v in PATELLA_TENDON_RANGE)} mm or no converged pose)")
+    _patella_bodies(patellae, pm, meshes_lab, est.notes)
     centres = ("hip", "knee", "ankle")
     lengths = fuse_segment_lengths({f"{j}_{s}": joints[f"{j}_{s}"].centre for s in inputs.sides for j in centres},
                                    {f"{j}_{s}": est.centres[s][j].motion for s in inputs.sides for j in centres},
@@ -198,11 +192,23 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     return summary.to_json()
 
 
+def _patella_bodies(patellae: dict, pm, meshes_lab: dict, notes: list) -> None:
+    """Each patella mesh onto its ``patella_<s>`` body where the model has the joint, else a note of why not."""
+    from ..patellofemoral import TENDON_RANGE
+
+    for s in patellae:
+        if s in pm.patellar_tracks:
+            meshes_lab[f"patella_{s}"] = (meshes_lab[f"patella_{s}"][0], f"patella_{s}")
+        else:
+            notes.append(f"patella_{s} rides on the femur: no patellar path on these bones (tendon length outside "
+                         f"{', '.join(f'{1e3 * v:.0f}' for v in TENDON_RANGE)} mm or no converged pose)")
+
+
 def _generic_step(generic: bool | None, muscles, gait2392, pm, inputs, ik, stage, say, truth, notes) -> dict | None:
     """summary.json's ``generic``: the model against gait2392 scaled to the same markers
     (`personalize.generic_comparison`), or None when not asked for (see `run_subject`'s `generic`).  Asked for
     explicitly, a failure stops the run; by default it is noted and the run goes on without it."""
-    from ..generic_comparison import compare_with_scaled_generic
+    from ..generic_comparison import GENERIC_DIR, compare_with_scaled_generic
     from ..muscles.generic import generic_model_path
 
     if generic is False or (generic is None and muscles == "none"):
@@ -215,6 +221,9 @@ def _generic_step(generic: bool | None, muscles, gait2392, pm, inputs, ik, stage
     except (InputError, FitError, ValueError, RuntimeError) as exc:
         if generic:
             raise InputError(path, f"gait2392 scaled to the subject's markers: {exc}") from None
+        import shutil
+
+        shutil.rmtree(inside(stage, GENERIC_DIR), ignore_errors=True)       # no partial comparison is published
         notes.append(f"no comparison with the scaled generic model: {exc}")
         return None
 
