@@ -19,9 +19,10 @@ the subject's surfaces for its contact):
    along :math:`A' \to T`, contact force along the femoral normal :math:`n` at the soft contact point :math:`C`;
    force balance fixes the two tensions per unit contact force, and their moment about :math:`C` must vanish.
 
-Solved with `scipy.optimize.least_squares` (the residuals in mm and mN m), continued from the MRI pose in steps
-of `STEP_DEG` each way.  A knee angle whose residual exceeds `RESIDUAL_TOL` ends the converged range (the patella
-has left the surfaces the model knows, e.g. past the notch); `PatellarTrack` keeps that range only.
+Solved with `scipy.optimize.least_squares` (residuals in mm), continued from the MRI pose in steps of `STEP_DEG`
+each way (the last two poses extrapolated as the guess, a failed step halved twice).  A knee angle still above
+`RESIDUAL_TOL` ends the converged range (the patella has left the surfaces the model knows, e.g. past the notch);
+`PatellarTrack` keeps that range only, and a range under `MIN_RANGE_DEG` gives no path.
 
 In the model the path is a CustomJoint femur -> patella whose coordinate is coupled one to one to knee flexion
 (as Rajagopal et al. 2016's ``knee_angle_r_beta``): rotation :math:`\alpha(q)` about Z and the translation
@@ -35,7 +36,7 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["PatellaGeometry", "PatellarTrack", "patellar_track", "CONTACT_TAU", "QUADRICEPS_POINT",
-           "TENDON_RANGE", "STEP_DEG", "RESIDUAL_TOL"]
+           "TENDON_RANGE", "STEP_DEG", "RESIDUAL_TOL", "MIN_RANGE_DEG"]
 
 #: m, soft-minimum temperature of the articular clearance (smooth in the pose; about the mesh spacing)
 CONTACT_TAU = 0.0007
@@ -46,6 +47,8 @@ QUADRICEPS_POINT = (0.02, 0.20)
 TENDON_RANGE = (0.03, 0.09)
 #: deg, continuation step of the knee angle
 STEP_DEG = 5.0
+#: deg, the least converged range above full extension for a path to be used (gait's knee reaches 60-70 deg)
+MIN_RANGE_DEG = 45.0
 #: residual (mm: tendon length, clearance, moment per unit contact force) above which a knee angle is not converged
 RESIDUAL_TOL = 0.5
 
@@ -119,7 +122,7 @@ def _rz(a: float) -> np.ndarray:
 
 def patellar_track(geometry: PatellaGeometry, frame: tuple, tuberosity_at: Callable[[float], np.ndarray],
                    flexion_range=(-10.0, 120.0), start_deg: float = 0.0) -> PatellarTrack | None:
-    """The patella's path over `flexion_range` (deg), or None when the tendon length is implausible.
+    """The patella's path over `flexion_range` (deg), or None (implausible tendon length, too short a range).
 
     Parameters
     ----------
@@ -170,21 +173,35 @@ def patellar_track(geometry: PatellaGeometry, frame: tuple, tuberosity_at: Calla
         moment = cross(B[:2] - C[:2], fq * uq[:2]) + cross(A[:2] - C[:2], ft * ut[:2])
         return 1e3 * np.array([np.linalg.norm(A - T) - L0, sm - d0, moment])
 
+    def solve(q, x):
+        r = least_squares(residuals, x, args=(tuberosity_at(np.radians(q)),), x_scale=[0.1, 0.005, 0.005])
+        return r.x, float(np.max(np.abs(r.fun)))
+
     rows = {}
     for direction in (1.0, -1.0):
-        x = np.zeros(3)
-        q = start_deg
-        while flexion_range[0] - 1e-9 <= q <= flexion_range[1] + 1e-9:
-            r = least_squares(residuals, x, args=(tuberosity_at(np.radians(q)),), x_scale=[0.1, 0.005, 0.005])
-            res = float(np.max(np.abs(r.fun)))
-            if res > RESIDUAL_TOL:
+        path = [(start_deg, np.zeros(3))]           # (knee angle, pose), the MRI pose as the first guess
+        step = STEP_DEG
+        while True:
+            q0, x0 = path[-1]
+            q = q0 + direction * step
+            if not (flexion_range[0] - 1e-9 <= q <= flexion_range[1] + 1e-9) or step < STEP_DEG / 4:
                 break
-            x = r.x
+            # predictor: the last two poses extrapolated; corrector: least squares; a failed step is halved
+            guess = x0 if len(path) < 2 else x0 + (x0 - path[-2][1]) * step / abs(q0 - path[-2][0])
+            x, res = solve(q, guess if len(path) > 1 else x0)
+            if res > RESIDUAL_TOL:
+                step /= 2.0
+                continue
+            path.append((q, x))
             rows[round(q, 6)] = (x.copy(), res)
-            q += direction * STEP_DEG
-    if len(rows) < 3:
-        return None
+            step = STEP_DEG
+        if len(path) == 1:
+            x, res = solve(start_deg, np.zeros(3))
+            if res <= RESIDUAL_TOL:
+                rows[round(start_deg, 6)] = (x, res)
     qs = np.array(sorted(rows))
+    if len(qs) < 3 or qs[-1] - max(qs[0], 0.0) < MIN_RANGE_DEG:
+        return None
     X = np.array([rows[k][0] for k in qs])
     trans = np.array([(c - _rz(a) @ c)[:2] + t for a, t in zip(X[:, 0], X[:, 1:])])
     return PatellarTrack(np.radians(qs), X[:, 0], trans, c, L0, float(d0), np.array([rows[k][1] for k in qs]))
