@@ -3,12 +3,12 @@
 Runs the [V1] realistic validation subjects (`personalize.evaluation.realistic_set.draw_realistic_subjects`: real
 ICL-MRI and LHDL-CT anatomy with four marker sets and both lab orientations, and analytic phantoms) through
 `personalize run` with the comparison on (`personalize.generic_comparison`), and tabulates per marker set and lab
-the median joint-centre errors against the truth (static pose, mm) and the median gait-angle RMSE (deg) of the
-personalised model and of the scaled gait2392.
+the median joint-centre errors against the truth (static pose, mm; both sides pooled) and the median gait-angle
+RMSE (deg) of the personalised model and of the scaled gait2392.
 
 Usage::
 
-    python benchmarks/generic.py [--subjects 24] [--seed 0] [--workers 2] [--out DIR] [--json FILE]
+    python benchmarks/generic.py [--subjects 24] [--seed 0] [--workers 2] [--out DIR] [--json FILE] [--rows FILE]
 """
 from __future__ import annotations
 
@@ -56,10 +56,12 @@ def one(spec_json: dict, work: str) -> dict:
     return row
 
 
-def _medians(rows: list, keys) -> dict:
+def _medians(rows: list, keys, suffix: str) -> dict:
+    """key -> (personalised median, generic median, n) over the rows' ``<key><side>_<suffix>`` entries (both sides
+    pooled)."""
     out = {}
     for k in keys:
-        v = np.array([r[x] for r in rows for x in r if x.startswith(k) and isinstance(r[x], (list, tuple))], float)
+        v = np.array([r[f"{k}{s}{suffix}"] for r in rows for s in "rl" if f"{k}{s}{suffix}" in r], float)
         if len(v):
             out[k] = (float(np.median(v[:, 0])), float(np.median(v[:, 1])), len(v))
     return out
@@ -76,10 +78,11 @@ def table(rows: list) -> str:
              + " | " + " | ".join(f"{a} RMSE deg" for a in ("hip_flexion", "knee_flexion", "ankle_angle")) + " |",
              "|---|---|---|" + "---|" * 6]
     for (ms, lab), rs in sorted(groups.items(), key=lambda kv: (kv[0][0] == "all", kv[0])):
-        cm = _medians(rs, [k for k in keys])
-        am = _medians(rs, ("hip_flexion", "knee_flexion", "ankle_angle"))
+        cm = _medians(rs, keys, "_mm")
+        angles = ("hip_flexion_", "knee_flexion_", "ankle_angle_")
+        am = _medians(rs, angles, "_deg")
         cells = [f"{cm[k][0]:.1f} / {cm[k][1]:.1f}" if k in cm else "-" for k in keys]
-        cells += [f"{am[k][0]:.1f} / {am[k][1]:.1f}" if k in am else "-" for k in ("hip_flexion", "knee_flexion", "ankle_angle")]
+        cells += [f"{am[k][0]:.1f} / {am[k][1]:.1f}" if k in am else "-" for k in angles]
         lines.append(f"| {ms} | {lab} | {len(rs)} | " + " | ".join(cells) + " |")
     refused = [r for r in rows if "refused" in r]
     if refused:
@@ -96,7 +99,11 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, help="work folder (default: a temporary one)")
     ap.add_argument("--json", type=Path, help="write the rows here")
+    ap.add_argument("--rows", type=Path, help="tabulate the rows of an earlier --json instead of running")
     a = ap.parse_args()
+    if a.rows:
+        print(table(json.loads(a.rows.read_text(encoding="utf-8"))))
+        return
     specs = [s.to_json() for s in draw_realistic_subjects(a.subjects, a.seed, DATA)]
     with tempfile.TemporaryDirectory() as tmp:
         work = os.fspath(a.out or tmp)
