@@ -77,7 +77,7 @@ def icl_run(shared_data, tmp_path_factory):
                           reference=shared_data / "reference_models" / "manual_ICL_MRI.osim", marker_set="pig",
                           static_frames=20, functional=False)
     write_phantom(build_phantom(opts), root / "subject")
-    summary = run_subject(root / "subject", root / "out", report=False, muscles="none", generic=False)
+    summary = run_subject(root / "subject", root / "out", report=False, muscles="none", generic=False, patella="joint")
     return root / "out", summary
 
 
@@ -135,3 +135,12 @@ def test_the_patella_rides_on_the_femur_through_flexion(icl_run):
         gaps.append(float(trimesh.proximity.closest_point(fem, P)[1].min()))
         assert trimesh.proximity.signed_distance(fem, P).max() <= 0.0
     assert 0.001 < gaps[0] < 0.008 and np.ptp(gaps) < 0.001
+
+
+def test_a_bad_patella_choice_is_refused_before_any_work(tmp_path):
+    from lowerlimb.errors import InputError
+    from personalize.pipeline import run_subject
+
+    with pytest.raises(InputError, match="--patella"):
+        run_subject(tmp_path / "nowhere", tmp_path / "out", patella="hinge")
+    assert not (tmp_path / "out").exists()

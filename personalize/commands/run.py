@@ -44,6 +44,10 @@ def register(app: typer.Typer) -> None:
                                      "markers (OpenSim's ScaleTool) and tracked by the same IK: generic/ and "
                                      "summary.json's generic (default: when gait2392 is found and --muscles is not "
                                      "none)."),
+        patella: str = typer.Option("fixed", "--patella", help="fixed (the patella rides on the femur) or joint (a "
+                                    "patellofemoral joint whose path comes from the subject's femur, patella and "
+                                    "tibial tuberosity; not yet the default: OpenSim's ID disagrees with "
+                                    "personalize's on a model with it)."),
     ) -> None:
         """Personalised model from MRI and motion capture: fused joints, model.osim, IK of every trial, report."""
         from rich.console import Console
@@ -55,7 +59,7 @@ def register(app: typer.Typer) -> None:
         with StepProgress("run", expected_steps(subject_dir), console) as prog:
             summary = run_subject(subject_dir, out, report=report, progress=prog, overwrite=overwrite,
                                   marker_set=marker_set, full_meshes=full_meshes, muscles=muscles,
-                                  gait2392=gait2392, generic=generic)
+                                  gait2392=gait2392, generic=generic, patella=patella)
         if not quiet:
             _print_summary(summary, out, Console())
 

@@ -19,12 +19,14 @@ __all__ = ["run_subject", "read_subject_bones", "build_model", "MUSCLES_ENV"]
 
 #: environment variable giving `run_subject`'s default ``muscles`` (``none`` or ``gait2392``)
 MUSCLES_ENV = "PERSONALIZE_MUSCLES"
+#: ``run_subject``'s `patella` choices
+PATELLA_CHOICES = ("fixed", "joint")
 
 
 def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[[str], None] | None = None,
                 report: bool = True, overwrite: bool = False, marker_set=None, model_check: bool = True,
                 full_meshes: bool = False, muscles: str | None = None, gait2392=None,
-                generic: bool | None = None) -> dict:
+                generic: bool | None = None, patella: str = "fixed") -> dict:
     """Run the whole pipeline on one subject folder; outputs are staged into `out`.
 
     Parameters
@@ -47,6 +49,9 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     gait2392 : the generic gait2392 model file (None: `personalize.muscles.generic.generic_model_path`'s search)
     generic : compare with gait2392 scaled to the same markers (`personalize.generic_comparison`; ``generic/`` and
         summary.json's ``generic``); None: when the generic model is found and the muscles are not ``none``
+    patella : "fixed" (the patella rides on the femur) or "joint" (a patellofemoral joint,
+        `personalize.patellofemoral`, on each side whose bones give a path; not the default yet: OpenSim's
+        InverseDynamicsTool disagrees with personalize's ID on a model with it)
 
     Returns
     -------
@@ -62,12 +67,14 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     from ..outputs import check_output_dir
     from ..presentation.subject_report import write_refusal_report
 
+    if patella not in PATELLA_CHOICES:
+        raise InputError("--patella", f"{patella!r} is not one of {', '.join(PATELLA_CHOICES)}")
     check_output_dir(out, inputs=[subject_dir], overwrite=overwrite)
     muscles = _checked_muscles(muscles, gait2392)
     try:
         return _run_subject(subject_dir, out, progress=progress, report=report, marker_set=marker_set,
                             model_check=model_check, full_meshes=full_meshes, muscles=muscles, gait2392=gait2392,
-                            generic=generic)
+                            generic=generic, patella=patella)
     except (InputError, FitError) as exc:
         if report:
             write_refusal_report(Path(out), subject_dir, exc)
@@ -89,7 +96,7 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
 
 def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker_set=None,
                  model_check: bool = True, full_meshes: bool = False, muscles: str | None = None,
-                 gait2392=None, generic: bool | None = None) -> dict:
+                 gait2392=None, generic: bool | None = None, patella: str = "fixed") -> dict:
     """`run_subject` without the refusal report."""
     from ..bone_set import write_bone_files
     from ..evaluation.truth import chain_angle_errors, compare_with_truth, truth_in_static_lab
@@ -121,7 +128,7 @@ def _run_subject(subject_dir, out, *, progress=None, report: bool = True, marker
     meshes_lab = bone_meshes_lab(bones.surfaces, placements, inputs.sides)
     markers = model_markers(inputs, meshes_lab)
     say("building the model")
-    patellae = patella_geometries(bones.surfaces, bones.landmarks, placements, inputs.sides)
+    patellae = patella_geometries(bones.surfaces, bones.landmarks, placements, inputs.sides) if patella == "joint" else {}
     try:
         pm, intercepts = build_model(inputs, est, joints, say, markers, patellae)
     except InputError as exc:
