@@ -230,6 +230,7 @@ def compare_with_scaled_generic(pm, inputs, ik: dict, stage: Path, generic_path,
     generic_path : gait2392 (.osim with its ``Geometry``); truth : `evaluation.truth.truth_in_static_lab` or None
     """
     from kinematics.io.marker_sets import canonical_names, preset
+    from kinematics.io.opensim_io import degree_coordinates
     from kinematics.io.storage import write_mot
 
     from .model_builder import trial_in_ground
@@ -245,7 +246,7 @@ def compare_with_scaled_generic(pm, inputs, ik: dict, stage: Path, generic_path,
                                                     work)
     g_placed, q0 = _placed(g_model, generic.landmarks, factors, lm, static,
                            {m.name: m.body for m in pm.model.markers}, work)
-    rot = [c.name for c in g_placed.coordinates if c.kind == "rotational"]
+    rot = degree_coordinates(g_placed)
     write_mot(inside(work, "static.mot"), g_placed.coordinate_names, np.array([0.0]), q0[None], rotational=rot,
               name="static pose of the scaled gait2392 (marker placement)")
     sides = tuple(inputs.sides)
@@ -307,13 +308,14 @@ def _tracked(g_placed, q0, trial, markers, work: Path, name: str):
     writes ``<name>.mot`` and its OpenSim IK set-up; returns the result with ``knee_flexion`` (`_as_flexion`)."""
     from kinematics.algorithms.ik import solve_ik
     from kinematics.io.ik_setup import write_ik_setup
+    from kinematics.io.opensim_io import degree_coordinates
     from kinematics.io.storage import write_mot
 
     from .pipeline.trials import OPENSIM_IK_ACCURACY
 
     w = {m: 1.0 for m in markers if m in g_placed.marker_names}
     res = solve_ik(g_placed, trial, marker_weights=w, q0=q0)
-    rot = [c.name for c in g_placed.coordinates if c.kind == "rotational"]
+    rot = degree_coordinates(g_placed)
     write_mot(inside(work, f"{name}.mot"), g_placed.coordinate_names, res.time, res.q, rotational=rot,
               name=f"IK {name} (scaled gait2392)")
     write_ik_setup(inside(work, f"{name}_ik_setup.xml"), model_file="scaled_generic.osim",

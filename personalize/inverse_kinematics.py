@@ -49,7 +49,8 @@ class TrialIK:
     ik : IKResult
         the engine's per-frame solution (q in rad / m, marker errors in m)
     coordinates : tuple of str (n_q), the model's coordinate names
-    rotational : tuple of str, the rotational coordinates (degrees in the .mot file)
+    rotational : tuple of str, the coordinates in degrees in the .mot file (OpenSim's Rotational ones,
+        `kinematics.io.opensim_io.degree_coordinates`)
     model_name, trial_name : file names of the inputs (stated in the output headers)
     warnings : tuple of str, setup tasks ignored, skipped or underdetermined frames
     lab : LabFrame or None, the trial's vertical and progression read from its markers
@@ -196,7 +197,9 @@ def trial_inverse_kinematics(model_path: str | os.PathLike, trial_path: str | os
         warnings.append(f"{int(und.sum())} frame(s) have too few markers to determine every coordinate{names} "
                         f"(times {_times(res.time, und)}); their undetermined coordinates keep the previous "
                         "frame's value")
-    rot = tuple(c.name for c in model.coordinates if c.kind == "rotational")
+    from kinematics.io.opensim_io import degree_coordinates
+
+    rot = tuple(degree_coordinates(model))      # OpenSim's Rotational ones; a coupled patella coordinate in radians
     try:
         lab, lab_problem = detect_lab(None, [trial]), ""
     except InputError as exc:

@@ -129,7 +129,7 @@ def trial_joint_dynamics(model_path: str | os.PathLike, kinematics: str | os.Pat
     """
     from kinematics.gait.inverse_dynamics import loads_from_c3d, trial_inverse_dynamics
     from kinematics.io.external_loads import read_external_loads
-    from kinematics.io.opensim_io import load_osim
+    from kinematics.io.opensim_io import degree_coordinates, load_osim
     from kinematics.io.storage import read_mot
 
     if (loads is None) == (c3d is None):
@@ -141,8 +141,7 @@ def trial_joint_dynamics(model_path: str | os.PathLike, kinematics: str | os.Pat
         if not Path(p).is_file():
             raise InputError(p, "file not found")
     model = load_osim(model_path)
-    kinds = tuple(c.kind for c in model.coordinates)
-    tab = read_mot(kinematics).to_radians([c for c, k in zip(model.coordinate_names, kinds) if k == "rotational"])
+    tab = read_mot(kinematics).to_radians(degree_coordinates(model))
     q = tab.select(model.coordinate_names)
     notes: list[str] = []
     per_coordinate = None

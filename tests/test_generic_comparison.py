@@ -56,7 +56,7 @@ def test_opensims_ik_tool_reproduces_the_generic_ik(generic_run):
     out, summary, _ = generic_run
     trial = next(iter(summary["generic"]["trials"]))
     worst, _ = opensim_ik_difference_deg(out / "generic" / f"{trial}_ik_setup.xml", out / "generic" / f"{trial}.mot",
-                                         out / "opensim_check")
+                                         out / "opensim_check", out / "generic" / "scaled_generic.osim")
     assert worst < 0.05
 
 

@@ -109,7 +109,8 @@ def test_opensims_ik_reproduces_ours_with_the_patella(icl_run):
     out, summary = icl_run
     trial = next(t for t in summary["ik"] if t != "static")
     worst, names = opensim_ik_difference_deg(out / "kinematics" / f"{trial}_ik_setup.xml",
-                                             out / "kinematics" / f"{trial}.mot", out / "opensim_check")
+                                             out / "kinematics" / f"{trial}.mot", out / "opensim_check",
+                                             out / "model.osim")
     assert "knee_flexion_r_beta" in names
     assert worst < 0.5
 
@@ -144,3 +145,14 @@ def test_a_bad_patella_choice_is_refused_before_any_work(tmp_path):
     with pytest.raises(InputError, match="--patella"):
         run_subject(tmp_path / "nowhere", tmp_path / "out", patella="hinge")
     assert not (tmp_path / "out").exists()
+
+
+def test_opensims_inverse_dynamics_equals_ours_with_the_patella(icl_run, opensim, tmp_path):
+    """The patella's coordinate is "Coupled" to OpenSim, which reads it in radians whatever the header says: the
+    IK files hold it so, and OpenSim's ID on them equals personalize's (every coordinate within 1e-6 of its peak)."""
+    from opensim_checks import generalised_force, synthetic_load_id_against_opensim
+
+    out, _ = icl_run
+    opensim.Logger.setLevelString("warn")
+    _, os_id, _ = synthetic_load_id_against_opensim(out, tmp_path)
+    assert np.abs(generalised_force(os_id, "knee_flexion_r_beta")).max() < 1.0      # a 0.1 kg patella

@@ -450,43 +450,15 @@ def test_demo_model_and_meshes_are_light_and_stated(demo, opensim):
 def test_setup_writers_on_the_demo_model(demo, opensim, tmp_path):
     """Without force plates (the analytic phantom has none), the set-up writers on the demo's model and gait IK with
     a synthetic ground reaction on calcn_r: OpenSim's ID and SO run as written; ID = personalize's ID, SO = ID."""
-    from kinematics.io.dynamics_setup import run_setup, write_id_setup, write_reserve_actuators, write_so_setup
-    from kinematics.io.external_loads import ExternalLoad, write_external_loads
-    from kinematics.io.storage import read_mot, read_sto
-    from opensim_checks import ID_ABS_TOL, ID_REL_TOL, check_so_reproduces_id, generalised_force
-    from personalize.joint_dynamics import trial_joint_dynamics
+    from kinematics.io.dynamics_setup import run_setup, write_reserve_actuators, write_so_setup
+    from kinematics.io.storage import read_sto
+    from opensim_checks import check_so_reproduces_id, generalised_force, synthetic_load_id_against_opensim
 
     out, _ = demo
     opensim.Logger.setLevelString("warn")
-    shutil.copy(out / "model" / "model.osim", tmp_path / "model.osim")
-    shutil.copy(out / "model" / "model.json", tmp_path / "model.json")
-    k = tmp_path / "kinematics"
-    k.mkdir()
-    shutil.copy(out / "model" / "kinematics" / "gait_01.mot", k / "gait_01.mot")
-    mot = read_mot(k / "gait_01.mot")
-    t = mot.time
-    x = lambda c: mot.values[:, mot.columns.index(c)]  # noqa: E731
-    w = 2 * np.pi * t
-    F = np.column_stack([30 * np.sin(w), 700 + 100 * np.sin(2 * w), 10 * np.cos(w)])        # N, ground
-    P = np.column_stack([x("pelvis_tx"), np.zeros_like(t), x("pelvis_tz")])                  # m, under the pelvis
-    T = np.column_stack([np.zeros_like(t), 2 * np.cos(w), np.zeros_like(t)])                 # N m
-    write_external_loads(k, "gait_01_grf", [ExternalLoad("R_ground_reaction", "calcn_r", t, F, P, T)],
-                         frame="model ground")
+    k, os_id, common = synthetic_load_id_against_opensim(out / "model", tmp_path)
     write_reserve_actuators(tmp_path / "reserve_actuators.xml", tmp_path / "model.osim")
-    window = (float(t[5]), float(t[-6]))
-    common = dict(model_file="../model.osim", coordinates_file="gait_01.mot", external_loads_file="gait_01_grf.xml",
-                  time_range=window, cutoff_hz=6.0)
-    write_id_setup(k / "id.xml", output_gen_force_file="id.sto", name="gait_01_id", **common)
     write_so_setup(k / "so.xml", force_set_files=["../reserve_actuators.xml"], name="so", **common)
-    assert run_setup(k / "id.xml") == "InverseDynamicsTool"
-    os_id = read_sto(k / "id.sto")
-    mine = trial_joint_dynamics(tmp_path / "model.osim", k / "gait_01.mot",
-                                loads=(k / "gait_01_grf.mot", k / "gait_01_grf.xml"), cutoff=6.0,
-                                start=window[0], end=window[1]).result
-    assert mine.time.shape == os_id.time.shape
-    for c in mine.coordinates:
-        a = generalised_force(os_id, c)
-        assert np.abs(a - mine[c]).max() < ID_REL_TOL * np.abs(a).max() + ID_ABS_TOL, c
     assert np.abs(generalised_force(os_id, "ankle_angle_r")).max() > 10.0        # the load reaches the foot
     assert run_setup(k / "so.xml") == "AnalyzeTool"
     so = read_sto(k / "so_StaticOptimization_force.sto")

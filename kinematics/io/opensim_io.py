@@ -29,7 +29,7 @@ from kinematics.multibody.functions import Constant, Function, Linear, Multiplie
 from kinematics.multibody.joints import CustomJoint, Transform, TransformAxis, matrix_to_euler_xyz
 from kinematics.multibody.model import GROUND, Body, Coordinate, Marker, Model
 
-__all__ = ["load_osim", "save_osim", "to_opensim", "check_osim_file", "read_xml", "import_opensim", "open_osim_model",
+__all__ = ["degree_coordinates", "load_osim", "save_osim", "to_opensim", "check_osim_file", "read_xml", "import_opensim", "open_osim_model",
            "write_osim", "vec_from_opensim", "transform_from_opensim", "function_from_opensim", "function_to_opensim",
            "add_coupler_constraint", "opensim_inverse_kinematics", "run_opensim_ik_tool"]
 
@@ -228,6 +228,22 @@ _STANDARD = {
     "PlanarJoint": ([_E[2]], [_E[0], _E[1]]),
     "WeldJoint": ([], []),
 }
+
+
+def degree_coordinates(model: Model) -> list[str]:
+    """The coordinates an OpenSim storage with ``inDegrees=yes`` holds in degrees: those OpenSim calls Rotational,
+    i.e. that drive a rotation axis through the identity function.  A coordinate driving its axes through other
+    functions (a patella's, coupled to knee flexion through splines) is "Coupled" to OpenSim, which writes and
+    reads it in radians whatever the header says; the other rotational coordinates are in degrees."""
+    from kinematics.multibody.joints import is_identity_function
+
+    rot = {c.name for c in model.coordinates if c.kind == "rotational"}
+    identity = set()
+    for j in model.joints:
+        for ax in getattr(j, "rotations", ()):
+            if is_identity_function(ax.function):
+                identity.update(ax.coordinates)
+    return [n for n in model.coordinate_names if n in rot and n in identity]
 
 
 def load_osim(path: str | os.PathLike) -> Model:

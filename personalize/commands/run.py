@@ -46,8 +46,7 @@ def register(app: typer.Typer) -> None:
                                      "none)."),
         patella: str = typer.Option("fixed", "--patella", help="fixed (the patella rides on the femur) or joint (a "
                                     "patellofemoral joint whose path comes from the subject's femur, patella and "
-                                    "tibial tuberosity; not yet the default: OpenSim's ID disagrees with "
-                                    "personalize's on a model with it)."),
+                                    "tibial tuberosity; OpenSim's IK and ID reproduce personalize's on it)."),
     ) -> None:
         """Personalised model from MRI and motion capture: fused joints, model.osim, IK of every trial, report."""
         from rich.console import Console

@@ -50,8 +50,8 @@ def run_subject(subject_dir: str | Path, out: str | Path, *, progress: Callable[
     generic : compare with gait2392 scaled to the same markers (`personalize.generic_comparison`; ``generic/`` and
         summary.json's ``generic``); None: when the generic model is found and the muscles are not ``none``
     patella : "fixed" (the patella rides on the femur) or "joint" (a patellofemoral joint,
-        `personalize.patellofemoral`, on each side whose bones give a path; not the default yet: OpenSim's
-        InverseDynamicsTool disagrees with personalize's ID on a model with it)
+        `personalize.patellofemoral`, on each side whose bones give a path; not the default until the realistic
+        validation and the muscle benchmark have been run with it)
 
     Returns
     -------

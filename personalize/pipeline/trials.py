@@ -57,8 +57,10 @@ def solve_trials(pm, inputs: SubjectInputs, stage: Path, say, notes: list | None
     from ..inverse_kinematics import write_marker_errors
     from ..model_builder import trial_in_ground
 
+    from kinematics.io.opensim_io import degree_coordinates
+
     results, fits = {}, {}
-    rot = [c.name for c in pm.model.coordinates if c.kind == "rotational"]
+    in_degrees = degree_coordinates(pm.model)        # a patella's coupled coordinate stays in radians, as OpenSim reads it
     locked = [c.name for c in pm.model.coordinates if c.locked]
     if notes is not None and locked:
         notes.append(f"IK: {', '.join(locked)} locked at the standing pose (no marker on the distal body)")
@@ -67,8 +69,8 @@ def solve_trials(pm, inputs: SubjectInputs, stage: Path, say, notes: list | None
         say(f"IK {name}")
         res = solve_ik(pm.model, trial)
         results[name] = res
-        write_mot(inside(stage, f"kinematics/{name}.mot"), pm.model.coordinate_names, res.time, res.q, rotational=rot,
-                  name=f"IK {name}")
+        write_mot(inside(stage, f"kinematics/{name}.mot"), pm.model.coordinate_names, res.time, res.q,
+                  rotational=in_degrees, name=f"IK {name}")
         write_marker_errors(inside(stage, f"kinematics/{name}_marker_errors.sto"), res, header=[f"IK {name}"])
         write_trc(inside(stage, f"kinematics/{name}.trc"), trial.subset(res.markers), units="mm")
         write_ik_setup(inside(stage, f"kinematics/{name}_ik_setup.xml"), model_file="../model.osim",
