@@ -193,9 +193,11 @@ def _angle_rms_difference(personal, generic, sides) -> dict:
 
 def _placed_markers(osim, scaled_path: Path, generic_model, q_static, static_ground, bodies: dict, out_path: Path):
     """The scaled model with the static trial's markers placed (ScaleTool's MarkerPlacer): written to `out_path`;
-    returns the placed marker names.  bodies : lab label -> body (the personalised model's assignment)."""
+    returns the placed `kinematics.multibody.Marker`s.  bodies : lab label -> body (the personalised model's
+    assignment)."""
     from kinematics.algorithms.fk import forward_kinematics
     from kinematics.io.opensim_io import write_osim
+    from kinematics.multibody.model import Marker
 
     st = forward_kinematics(generic_model, q_static)
     mean = np.nanmean(np.asarray(static_ground.positions, float), axis=0)
@@ -210,7 +212,7 @@ def _placed_markers(osim, scaled_path: Path, generic_model, q_static, static_gro
         b = generic_model.body_index(body)
         x = st.rotations[0, b].T @ (mean[k] - st.positions[0, b])
         om.addMarker(osim.Marker(n, om.getBodySet().get(body), osim.Vec3(*map(float, x))))
-        placed.append(n)
+        placed.append(Marker(n, body, x))
     om.finalizeConnections()
     write_osim(om, out_path)
     return tuple(placed)
@@ -290,7 +292,7 @@ def _placed(g_model, landmarks: dict, factors: dict, lm: dict, static, bodies: d
     from kinematics.algorithms.ik import solve_ik
     from kinematics.io.ik_setup import CoordinateTask
     from kinematics.io.markers import MarkerTrial
-    from kinematics.io.opensim_io import import_opensim, load_osim
+    from kinematics.io.opensim_io import import_opensim
 
     g_lm = g_model.replace(markers=_placement_markers(landmarks, factors, set(lm)))
     names = g_lm.marker_names
@@ -298,9 +300,9 @@ def _placed(g_model, landmarks: dict, factors: dict, lm: dict, static, bodies: d
     # subtalar and mtp held at zero, as OpenSim's example placement does (weight 1000): HEE alone leaves them free
     held = [CoordinateTask(c, 1000.0, 0.0) for c in g_lm.coordinate_names if c.startswith(("subtalar_angle", "mtp_angle"))]
     q = solve_ik(g_lm, lt, coordinate_tasks=held, check_units=False).q[0]
-    path = work / "scaled_generic.osim"
-    _placed_markers(import_opensim(), work / "gait2392_scaled.osim", g_lm, q, static, bodies, path)
-    return load_osim(path), q
+    placed = _placed_markers(import_opensim(), work / "gait2392_scaled.osim", g_lm, q, static, bodies,
+                             work / "scaled_generic.osim")
+    return g_model.replace(markers=placed), q
 
 
 def _tracked(g_placed, q0, trial, markers, work: Path, name: str):

@@ -13,12 +13,11 @@ __all__ = ["subject_parameters", "patella_geometries", "bone_meshes_lab", "bone_
 
 
 def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict,
-                       markers: MarkerAssignment | None = None, patellae: dict | None = None) -> SubjectParameters:
+                       markers: MarkerAssignment | None = None) -> SubjectParameters:
     """The model builder's input: fused centres and axes with their covariances, static markers, provenance.
 
     `static` : label -> `Gaussian` static marker positions (the trial's own labels); `markers`: their bodies
-    (`marker_assignment.assign_markers`), None: the Plug-in-Gait name table of the builder; `patellae` : side ->
-    `personalize.patellofemoral.PatellaGeometry` (`patella_geometries`) for a patellofemoral joint.
+    (`marker_assignment.assign_markers`), None: the Plug-in-Gait name table of the builder.
     """
 
     sides = {}
@@ -29,7 +28,7 @@ def subject_parameters(inputs: SubjectInputs, est: JointEstimates, static: dict,
             ankle=c["ankle"].fused.mean, ankle_axis=a["ankle"].fused.direction,
             subtalar=p["subtalar"].point, subtalar_axis=p["subtalar"].direction, mtp=p["mtp"].point,
             mtp_axis=p["mtp"].direction, centre_cov={j: c[j].fused.cov for j in ("hip", "knee", "ankle")},
-            axis_sd_deg={j: a[j].fused.sd_deg for j in ("knee", "ankle")}, patella=(patellae or {}).get(s))
+            axis_sd_deg={j: a[j].fused.sd_deg for j in ("knee", "ankle")})
     subj = inputs.subject
     mass = float(subj.mass) if subj.mass else 70.0
     height = float(subj.height) if subj.height else 1.75

@@ -351,7 +351,8 @@ def build_model(inputs: SubjectInputs, est, joints: dict, say, markers=None, pat
     from .knee_law import fit_knee_laws, fuse_knee_intercepts
     from .model import subject_parameters
 
-    params = subject_parameters(inputs, est, static_marker_positions(inputs.static), markers, patellae)
+    # the first model only fits the knee laws: no patellar path yet (it follows the laws' knee)
+    params = subject_parameters(inputs, est, static_marker_positions(inputs.static), markers)
     pm = build_personal_model(params)
     standing: dict = {}
     laws = fit_knee_laws(pm, [t for k, t in sorted(inputs.trials.items()) if not k.startswith("functional")], say,
@@ -360,5 +361,5 @@ def build_model(inputs: SubjectInputs, est, joints: dict, say, markers=None, pat
     sources = dict(params.sources)
     sources.pop("knee law", None)
     sources.update(law_sources)
-    sides = {s: replace(sp, knee_law=laws[s][0]) for s, sp in params.sides.items()}
+    sides = {s: replace(sp, knee_law=laws[s][0], patella=(patellae or {}).get(s)) for s, sp in params.sides.items()}
     return build_personal_model(replace(params, sides=sides, sources=sources)), intercepts
