@@ -72,7 +72,10 @@ def hough_centres(points, normals, radii, *, inward: bool, tol: float, n_peaks: 
     R = np.repeat(np.asarray(radii, float), len(P))
     if len(C) == 0:
         return []
-    support = cKDTree(C).query_ball_point(C, tol, return_length=True, workers=-1).astype(float)
+    # the number of votes within `tol` of each vote, itself included: query_ball_point's count, from the
+    # pair list (2x less CPU on 10-40 k votes of 2-330 neighbours each)
+    pairs = cKDTree(C).query_pairs(tol, output_type="ndarray")
+    support = 1.0 + np.bincount(pairs.ravel(), minlength=len(C))
     peaks = []
     alive = np.ones(len(C), bool)
     for _ in range(n_peaks):
