@@ -42,3 +42,20 @@ def test_edge_curvature_of_a_sphere_is_one_over_its_radius():
     # exact normals give 1/r on every chord; the mesh's area-weighted vertex normals lean a few per cent inwards
     assert np.all(np.abs(H * r - 1.0) < 0.08) and abs(np.median(H) * r - 1.0) < 0.05
     assert np.all(edge_curvature(as_surface(trimesh.Trimesh(s.vertices, s.faces[:, ::-1], process=False))) > 0)
+
+
+def test_hough_peak_is_the_sphere_centre_with_its_ball_count_of_votes():
+    from scipy.spatial import cKDTree
+
+    from personalize.landmarks.shape_fits import hough_centres
+    rng = np.random.default_rng(5)
+    m = trimesh.creation.icosphere(subdivisions=4, radius=0.024)
+    cap = m.vertices[:, 2] > 0.0                                       # a head: the upper half sphere
+    centre = np.array([0.01, -0.02, 0.03])
+    P = m.vertices[cap] + centre + 2e-4 * rng.standard_normal((cap.sum(), 3))
+    N = m.vertex_normals[cap]
+    radii = np.linspace(0.018, 0.030, 7)
+    (support, c, r), = hough_centres(P, N, radii, inward=False, tol=1e-3)
+    assert np.linalg.norm(c - centre) < 1e-3 and abs(r - 0.024) < 1e-9
+    votes = np.concatenate([P - q * N for q in radii])
+    assert support == max(len(i) for i in cKDTree(votes).query_ball_point(votes, 1e-3))
