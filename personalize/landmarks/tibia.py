@@ -84,6 +84,42 @@ def tibia_surface(surface: Surface) -> Surface:
     return keep[0] if len(keep) == 1 else merge_surfaces(keep)
 
 
+#: a second shaft in the tibia's middle third counts as a fused fibula when it holds at least this share of the
+#: band's surface and spans this share of the band's length (ICL-MRI and LHDL-CT fibulae: 25-35 % and the whole
+#: band; a bump of the tibia itself, such as the interosseous crest, is not a component of the band)
+FUSED_FIBULA_AREA = 0.1
+FUSED_FIBULA_SPAN = 0.8
+
+
+def fused_fibular_shaft(tib: Surface, h: np.ndarray, lo: float, hi: float) -> np.ndarray | None:
+    """Centroid (3,) of a fibular shaft joined to the tibia surface at its ends, or None.
+
+    Tibia and fibula touch only at the tibiofibular joints; where a segmentation or a point-cloud
+    reconstruction joins them there, the surface is one component, but its part between heights `lo` and
+    `hi` (m, `h` the vertices' heights along the shaft) still splits into two shafts.  The smaller one is
+    the fibula when it is large and long enough (`FUSED_FIBULA_AREA`, `FUSED_FIBULA_SPAN`).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    band = (h > lo) & (h < hi)
+    F = tib.faces[band[tib.faces].all(axis=1)]
+    if len(F) < 100:
+        return None
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    n = len(tib.vertices)
+    _, lab = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    used = np.unique(F)
+    parts = sorted((np.flatnonzero(lab == c) for c in np.unique(lab[used])), key=lambda v: -tib.areas[v].sum())
+    if len(parts) < 2:
+        return None
+    v = parts[1]
+    total = sum(tib.areas[p].sum() for p in parts)
+    if tib.areas[v].sum() < FUSED_FIBULA_AREA * total or np.ptp(h[v]) < FUSED_FIBULA_SPAN * (hi - lo):
+        return None
+    return (tib.areas[v] @ tib.vertices[v]) / tib.areas[v].sum()
+
+
 def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None = None, *,
                  femur: Surface | None = None, talus: Surface | None = None):
     """Detect tibial landmarks, axes and the plafond cylinder.
@@ -182,8 +218,12 @@ def detect_tibia(surface: Surface, name: str = "tibia_r", fibula: Surface | None
 
     # ---- signs: lateral and anterior -------------------------------------------------
     lat = ant = None
-    if fib is not None:
-        fc = (fib.areas @ fib.vertices) / fib.areas.sum()
+    fc = None if fib is None else (fib.areas @ fib.vertices) / fib.areas.sum()
+    if fc is None and has_prox and has_dist:
+        fc = fused_fibular_shaft(tib, hp, bot + 0.3 * L, top - 0.3 * L)
+        if fc is not None:
+            res.notes.append(f"{name}: fibula joined to the tibia; its shaft gives the lateral and posterior sides")
+    if fc is not None:
         ref = cp if cp is not None else sp
         off = perpendicular(fc - ref, sd)
         lat = ml if off @ ml > 0 else -ml
