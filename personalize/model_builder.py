@@ -362,13 +362,11 @@ def build_personal_model(p: SubjectParameters) -> PersonalModel:
     for s in p.sides:
         c = laws[s].to_coupling(base.coordinate_names)
         coupling = c if coupling is None else coupling.stack(c)
-    tracks = {}
-    for s, sp in p.sides.items():
-        if sp.patella is not None:
-            tracks[s] = _patellar_track(base, s, sp, knee_frames[s], laws[s], knee_q[s], frames)
-    tracks = {s: t for s, t in tracks.items() if t is not None}
+    tracks = {s: t for s, sp in p.sides.items() if sp.patella is not None
+              and (t := _patellar_track(base, s, sp, knee_frames[s], laws[s], knee_q[s], frames)) is not None}
     if tracks:
-        base, coupling = _with_patellae(base, coupling, tracks, knee_frames, p, frames, offset)
+        base, coupling = _with_patellae(base, coupling, tracks, knee_frames, p, offset)
+        frames.update({f"patella_{s}": (np.asarray(p.sides[s].knee, float), knee_frames[s]) for s in tracks})
     model = base.with_couplings(coupling.over(base.coordinate_names)) if coupling is not None else base
     q0 = np.zeros(model.n_q)
     ix = model.coordinate_index
@@ -407,7 +405,7 @@ def _patellar_track(base: Model, s: str, sp: SideParameters, R_k: np.ndarray, la
     jt = base.joint(f"knee_{s}")
     o_t, R_t = frames[f"tibia_{s}"]
     tt_body = R_t.T @ (np.asarray(geo.tuberosity_on_tibia, float) - o_t)
-    tt_m = jt.child_offset.rotation.T @ (tt_body - jt.child_offset.translation)
+    tt_m = jt.child_offset.inverse().apply(tt_body)
 
     def tuberosity_at(q: float) -> np.ndarray:
         ang = np.array([q, knee_q[1], knee_q[2]])
@@ -417,7 +415,7 @@ def _patellar_track(base: Model, s: str, sp: SideParameters, R_k: np.ndarray, la
     return patellar_track(geo, (K, R_k), tuberosity_at, start_deg=float(np.degrees(knee_q[0])))
 
 
-def _with_patellae(base: Model, coupling, tracks: dict, knee_frames: dict, p, frames: dict, offset):
+def _with_patellae(base: Model, coupling, tracks: dict, knee_frames: dict, p, offset):
     """`base` with, per side in `tracks`, a patella body on a CustomJoint ``patellofemoral_<s>`` from the femur
     whose coordinate ``knee_flexion_<s>_beta`` equals knee flexion (one coupling row): rotation about the knee
     frame's Z and the joint frame's x, y translation, SimmSplines of it (`personalize.patellofemoral`)."""
@@ -427,7 +425,6 @@ def _with_patellae(base: Model, coupling, tracks: dict, knee_frames: dict, p, fr
     bodies, joints, coords = list(base.bodies), list(base.joints), list(base.coordinates)
     for s, tr in tracks.items():
         K = np.asarray(p.sides[s].knee, float)
-        frames[f"patella_{s}"] = (K, knee_frames[s])
         flex = sided("knee_flexion", s)
         beta = f"{flex}_beta"
         box = np.array([0.045, 0.045, 0.022])

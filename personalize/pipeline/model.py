@@ -62,6 +62,8 @@ def patella_geometries(surfaces: dict, landmarks, placements: dict, sides) -> di
     """side -> `personalize.patellofemoral.PatellaGeometry` in the static lab frame: femur, patella and the MRI's
     tibial tuberosity moved with the femur's placement (their MRI relation), the tuberosity also with the shank's.
     Sides without a patella, a confidently oriented one (`FLAG_LOW_CONFIDENCE`) or a tuberosity are left out."""
+    from trimesh.transformations import transform_points
+
     from ..landmarks.common import FLAG_LOW_CONFIDENCE
     from ..patellofemoral import PatellaGeometry
 
@@ -73,13 +75,13 @@ def patella_geometries(surfaces: dict, landmarks, placements: dict, sides) -> di
         if (pat is None or tt is None or T_f is None or T_t is None or FLAG_LOW_CONFIDENCE in pat.flags
                 or "articular" not in pat.frames or f"femur_{s}" not in surfaces or f"patella_{s}" not in surfaces):
             continue
-        move = lambda T, x: np.asarray(x, float) @ T[:3, :3].T + T[:3, 3]      # noqa: E731
         fm, pm_ = surfaces[f"femur_{s}"].mesh, surfaces[f"patella_{s}"].mesh
         R = T_f[:3, :3]
-        out[s] = PatellaGeometry(move(T_f, fm.vertices), np.asarray(fm.vertex_normals) @ R.T,
-                                 move(T_f, pm_.vertices), np.asarray(pm_.vertex_normals) @ R.T,
-                                 move(T_f, pat.landmarks["patella_centre"].position),
-                                 R @ pat.frames["articular"]["rotation"], move(T_f, tt.position), move(T_t, tt.position))
+        out[s] = PatellaGeometry(transform_points(fm.vertices, T_f), np.asarray(fm.vertex_normals) @ R.T,
+                                 transform_points(pm_.vertices, T_f), np.asarray(pm_.vertex_normals) @ R.T,
+                                 transform_points([pat.landmarks["patella_centre"].position], T_f)[0],
+                                 R @ pat.frames["articular"]["rotation"], transform_points([tt.position], T_f)[0],
+                                 transform_points([tt.position], T_t)[0])
     return out
 
 
