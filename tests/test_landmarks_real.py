@@ -189,3 +189,30 @@ def test_tlem2_talar_dome_follows_the_joint_space(shared_data):
     shift = np.linalg.norm(np.asarray(a.point) - 0.002 * up - np.asarray(base.point)) * 1e3
     turn = np.degrees(np.arccos(min(1.0, abs(float(np.dot(a.direction, base.direction))))))
     assert shift < 1.0 and turn < 1.0, (shift, turn)
+
+
+def test_icl_bones_at_a_childs_size_give_the_scaled_joints(icl, shared_data, tmp_path):
+    """ICL_MRI's bones shrunk to 0.6 of their size (a 7-9-year-old's pelvis, 157 mm wide): the joints are the
+    adult ones shrunk, as for any similarity of the input.  Pelvis, talus and foot search their lengths in units
+    of their own size below an adult's (`ADULT_PELVIS_WIDTH`, ...).  Measured: hip, knee 0.03 mm, 0.0 deg; ankle
+    0.4 mm, 0.4 deg; subtalar 2.5 mm, 2.8 deg; mtp 0.5 mm, 1.2 deg.  With the adult constants the pelvic frame
+    was 155 deg off (its sockets' search radii start at 16 mm) and the mtp 31 mm (no metatarsal head sphere)."""
+    import trimesh
+
+    from personalize.surfaces import load_bones
+
+    s, c = 0.6, np.array([0.1, -0.05, -0.8])                  # m, about a point near the bones
+    for f in sorted((shared_data / "bones" / "ICL_MRI").glob("*.ply")):
+        if f.stem not in ("pelvis", "pelvis_r", "pelvis_l"):
+            m = trimesh.load(str(f), process=False)
+            m.vertices = (np.asarray(m.vertices) - 1e3 * c) * s + 1e3 * c
+            m.export(str(tmp_path / f.name))
+    joints = joints_from_landmarks(detect_landmarks(load_bones(tmp_path)))[0]
+    limits = {"hip": (0.5, 1.0), "knee": (0.5, 1.0), "ankle": (1.0, 1.0), "subtalar": (4.0, 4.0), "mtp": (1.5, 2.0)}
+    for name, j in icl[1].items():
+        mm, deg = limits[name[:-2]]
+        child = joints[name]
+        dist = np.linalg.norm(child.origin - ((j.origin - c) * s + c)) * 1e3
+        for a, b in ((j.rotation, child.rotation), (j.parent.rotation, child.parent.rotation)):
+            ang = np.degrees(np.arccos(np.clip(np.sum(a * b, axis=0), -1, 1))).max()
+            assert dist < mm and ang < deg, (name, dist, ang)

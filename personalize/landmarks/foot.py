@@ -53,27 +53,32 @@ TOE_HEAD_LENGTH = 0.015
 #: (tip 12-16 mm ahead on ICL-MRI, LHDL-CT and both TLEM2-MRI feet; the band's front 29-41 mm ahead on MC22's
 #: feet, which keep their toes)
 TOE_MAX_AHEAD_OF_D1M = 0.02
+#: m, the length (largest principal extent) of a calcaneus with its mid- and forefoot below which the foot is
+#: taken as smaller than an adult's and the lengths above and of the contact spheres shrink with it: a bit below
+#: the shortest adult one of the real sets (ICL-MRI 199, LHDL-CT 178, TLEM2-MRI 175 and 176 mm, the calcanei split
+#: from MC22's whole-foot meshes 168 mm and more)
+ADULT_FOOT_LENGTH = 0.165
 
 
-def _second_ray_dorsum(V, X, up, med, d1m, d5m, fore) -> np.ndarray | None:
+def _second_ray_dorsum(V, X, up, med, d1m, d5m, fore, u: float = 1.0) -> np.ndarray | None:
     """Plug-in-Gait's TOE site: the most dorsal point over the second metatarsal head (scanner, m), or None.
 
     The second ray is the band at `TOE_RAY_FRACTION` of the way from D1M to D5M across the foot; its most
     anterior vertex, at most `TOE_MAX_AHEAD_OF_D1M` ahead of D1M, is the head's tip, and the head the
-    `TOE_HEAD_LENGTH` behind it.
+    `TOE_HEAD_LENGTH` behind it (lengths times `u`, the foot's size relative to an adult's).
     """
     w = V @ med
     w2 = float(d1m @ med + TOE_RAY_FRACTION * ((d5m - d1m) @ med))
-    band = fore & (np.abs(w - w2) < TOE_BAND_HALF_WIDTH)
+    band = fore & (np.abs(w - w2) < TOE_BAND_HALF_WIDTH * u)
     if np.count_nonzero(band) < 10:
         return None
     x = V @ X
     # a foot label with its toes: the band's front is the second toe, not the metatarsal head
-    band &= x < float(d1m @ X) + TOE_MAX_AHEAD_OF_D1M
+    band &= x < float(d1m @ X) + TOE_MAX_AHEAD_OF_D1M * u
     if np.count_nonzero(band) < 10:
         return None
     tip = float(x[band].max())
-    head = band & (x > tip - TOE_HEAD_LENGTH)
+    head = band & (x > tip - TOE_HEAD_LENGTH * u)
     k = np.flatnonzero(head)[np.argmax(V[head] @ up)]
     return V[k].copy()
 
@@ -107,6 +112,9 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     fwd = unit(perpendicular(long_ax, up))
     q = (V - c) @ fwd
     L = float(q.max() - q.min())
+    u = min(1.0, float(np.ptp(V @ long_ax)) / ADULT_FOOT_LENGTH)     # the lengths' unit (1 for adults)
+    if u < 1.0:
+        res.notes.append(f"{name}: {u * ADULT_FOOT_LENGTH * 1e3:.0f} mm long, searched at {u:.2f} x adult size")
     back = q < q.min() + 0.25 * L
     front = q > q.max() - 0.25 * L
     if talus is not None:
@@ -154,15 +162,15 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     up = -down
     # ---- contacts refined on local spheres ---------------------------------------------------
     contacts = {}
-    for lab, k, rad in (("heel", kh, 0.012), ("met1", k1, 0.008), ("met5", k5, 0.008)):
+    for lab, k, rad in (("heel", kh, 0.012 * u), ("met1", k1, 0.008 * u), ("met5", k5, 0.008 * u)):
         near = np.linalg.norm(V - V[k], axis=1) < rad
         pt, cov = V[k].copy(), isotropic_cov(0.001)
         try:
             from personalize.fitting import fit_sphere
             f0 = fit_sphere(V[near], normals=Nrm[near])
-            f, sel = refine_sphere(V, Nrm, f0.centre, f0.radius, band=max(0.0008, 0.08 * f0.radius),
+            f, sel = refine_sphere(V, Nrm, f0.centre, f0.radius, band=max(0.0008 * u, 0.08 * f0.radius),
                                    min_cos=0.5, mask=np.linalg.norm(V - V[k], axis=1) < 1.6 * rad)
-            if 0.003 < f.radius < 0.04:
+            if 0.003 * u < f.radius < 0.04 * u:
                 pt = np.asarray(f.centre) + f.radius * down
                 cov = sphere_centre_cov(f) + float(np.asarray(f.covariance)[3, 3]) * np.outer(down, down)
                 res.fits[f"{lab}_sphere"] = {"type": "sphere", "centre": np.asarray(f.centre).tolist(),
@@ -196,7 +204,8 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     for mk, direction in ((f"{P}D1M", med), (f"{P}D5M", -med)):
         k = extreme_vertex(surface, direction, fore, smooth=0.001)
         res.landmarks[mk] = Landmark(V[k].copy(), isotropic_cov(0.002))
-    toe = _second_ray_dorsum(V, X, up, med, res.landmarks[f"{P}D1M"].position, res.landmarks[f"{P}D5M"].position, fore)
+    toe = _second_ray_dorsum(V, X, up, med, res.landmarks[f"{P}D1M"].position, res.landmarks[f"{P}D5M"].position, fore,
+                             u)
     if toe is not None:
         res.landmarks[f"{P}TOE"] = Landmark(toe, isotropic_cov(0.003))
     # ---- axes and frame ---------------------------------------------------------------------------

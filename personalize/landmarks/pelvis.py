@@ -21,12 +21,18 @@ from lowerlimb.errors import FitError
 from lowerlimb.geometry import unit
 
 from .common import FLAG_LOW_CONFIDENCE, BoneLandmarks, Landmark
-from .shape_fits import hough_centres, isotropic_cov, perpendicular, refine_sphere, sphere_centre_cov, sphere_fit_json
+from .shape_fits import (hough_centres, isotropic_cov, perpendicular, principal_axes, refine_sphere, sphere_centre_cov,
+                         sphere_fit_json)
 from .surface import Surface, extreme_vertex
 
 __all__ = ["detect_pelvis"]
 
 ACETABULUM_RADII = np.arange(0.016, 0.0341, 0.0015)
+#: m, the medio-lateral extent below which the pelvis is taken as smaller than an adult's and every length of
+#: the search (socket radii, distances, bands) shrinks with it: a bit below the narrowest adult pelvis of the
+#: real sets (ICL-MRI 261, LHDL-CT 293, TLEM2-MRI 270, MC22 259 mm, with or without the sacrum), so adults keep
+#: the constants they were chosen on and a child's pelvis (7-10 years: 150-200 mm) is searched at its own size
+ADULT_PELVIS_WIDTH = 0.255
 
 
 def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndarray | None = None) -> BoneLandmarks:
@@ -42,24 +48,28 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
     res = BoneLandmarks(bone=name, side=None)
     V, Nrm, A = surface.vertices, surface.normals, surface.areas
     cen = (A @ V) / A.sum()
-    peaks = hough_centres(V, Nrm, ACETABULUM_RADII, inward=True, tol=0.0015, n_peaks=8, min_separation=0.03)
+    _, axes, _ = principal_axes(V, A)
+    u = min(1.0, float(np.ptp(V @ axes[:, 0])) / ADULT_PELVIS_WIDTH)   # the search's length unit (1 for adults)
+    if u < 1.0:
+        res.notes.append(f"{name}: {u * ADULT_PELVIS_WIDTH * 1e3:.0f} mm wide, searched at {u:.2f} x adult size")
+    peaks = hough_centres(V, Nrm, u * ACETABULUM_RADII, inward=True, tol=0.0015 * u, n_peaks=8, min_separation=0.03 * u)
     fits = []
     for _, c0, r0 in peaks:
         try:
-            f, sel = refine_sphere(V, Nrm, c0, r0, band=max(0.002, 0.08 * r0), convex=False, min_cos=0.7)
+            f, sel = refine_sphere(V, Nrm, c0, r0, band=max(0.002 * u, 0.08 * r0), convex=False, min_cos=0.7)
         except FitError:
             continue
-        if not 0.014 < f.radius < 0.04 or sel.sum() < 50:
+        if not 0.014 * u < f.radius < 0.04 or sel.sum() < 50:
             continue
-        if any(np.linalg.norm(np.asarray(f.centre) - g[0].centre) < 0.03 for g in fits):
+        if any(np.linalg.norm(np.asarray(f.centre) - g[0].centre) < 0.03 * u for g in fits):
             continue
         fits.append((f, sel))
-    # the two sockets: the pair of candidates far apart (> 10 cm) with most support
+    # the two sockets: the pair of candidates far apart (> 10 cm in an adult) with most support
     pair = None
     for i in range(len(fits)):
         for j in range(i + 1, len(fits)):
             d = np.linalg.norm(fits[i][0].centre - fits[j][0].centre)
-            if 0.1 < d < 0.3:
+            if 0.1 * u < d < 0.3:
                 s = fits[i][1].sum() + fits[j][1].sum()
                 if pair is None or s > pair[0]:
                     pair = (s, i, j)
@@ -72,9 +82,9 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
     ml = unit(cb - ca)
     sup = unit(perpendicular(cen - mid, ml))
     # anterior: lowest mid-sagittal bone = symphysis
-    mids = np.abs((V - mid) @ ml) < 0.015
+    mids = np.abs((V - mid) @ ml) < 0.015 * u
     w = np.cross(sup, ml)
-    low = mids & (((V - mid) @ sup) < -0.01)
+    low = mids & (((V - mid) @ sup) < -0.01 * u)
     ant = None
     if low.sum() > 10:
         k = np.flatnonzero(low)[np.argmin(((V[low] - mid) @ sup))]
@@ -106,9 +116,9 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
     x = (V - mid) @ right
     hgt = (V - mid) @ sup
     for _ in range(3):
-        r_mask = (x > 0.03) & (hgt > 0.02)
-        l_mask = (x < -0.03) & (hgt > 0.02)
-        s_mask = (np.abs(x) < 0.02) & (hgt < 0.0)
+        r_mask = (x > 0.03 * u) & (hgt > 0.02 * u)
+        l_mask = (x < -0.03 * u) & (hgt > 0.02 * u)
+        s_mask = (np.abs(x) < 0.02 * u) & (hgt < 0.0)
         if not (r_mask.any() and l_mask.any() and s_mask.any()):
             break
         kr = extreme_vertex(surface, ant, r_mask)
@@ -132,8 +142,8 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
     for _ in range(5):
         Y = np.cross(Z, X)
         o_h = (V - mid) @ Y
-        r_mask = (x > 0.03) & (o_h > 0.02)
-        l_mask = (x < -0.03) & (o_h > 0.02)
+        r_mask = (x > 0.03 * u) & (o_h > 0.02 * u)
+        l_mask = (x < -0.03 * u) & (o_h > 0.02 * u)
         kr = extreme_vertex(surface, X, r_mask)
         kl = extreme_vertex(surface, X, l_mask)
         o = 0.5 * (V[kr] + V[kl])
@@ -146,7 +156,7 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
             # iliac wing behind the sacro-iliac joint: 30-75 % of the ASIS half-distance
             # from the midline (the sacrum and coccyx lie within the inner quarter)
             # ... and well above the hip centres (the lower sacrum is not)
-            m = (sgn * zz > 0.3 * half) & (sgn * zz < 0.75 * half) & (np.abs(ya) < 0.035) \
+            m = (sgn * zz > 0.3 * half) & (sgn * zz < 0.75 * half) & (np.abs(ya) < 0.035 * u) \
                 & ((V - mid) @ Y > 0.6 * ((o - mid) @ Y))
             if m.any():
                 k = extreme_vertex(surface, -X, m)
@@ -164,7 +174,7 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
         if done:
             break
     Y = np.cross(Z, X)
-    s_mask = (np.abs((V - o) @ Z) < 0.02) & (((V - mid) @ Y) < 0.0)
+    s_mask = (np.abs((V - o) @ Z) < 0.02 * u) & (((V - mid) @ Y) < 0.0)
     ks = extreme_vertex(surface, X, s_mask) if s_mask.any() else None
     sd_lm = np.hypot(noise, 0.002)
     res.landmarks["RASI"] = Landmark(V[kr].copy(), isotropic_cov(sd_lm))

@@ -44,6 +44,11 @@ FACET_INLIER = 0.0008
 #: largest plausible posterior-facet radius, m (adults 14-25 mm); a flattened, noisy
 #: facet drives the refit towards a plane, which must be rejected, not used
 FACET_MAX_RADIUS = 0.04
+#: m, the talar length (largest principal extent) below which the talus is taken as smaller than an adult's and
+#: the subtalar search's lengths (head and facet radii, zones, Hough tolerances) shrink with it: a bit below the
+#: shortest adult talus of the real sets (ICL-MRI 60, LHDL-CT 61, TLEM2-MRI 60 and 63, VAKHUM-CT 58, the tali
+#: split from MC22's whole-foot meshes 54 mm)
+ADULT_TALUS_LENGTH = 0.052
 #: talar dome seed: talus points whose normal meets the tibia within this gap, m
 DOME_CONTACT_GAP = 0.006
 #: ... and whose normal is within acos(DOME_MIN_UP_COS) of superior (the trochlea,
@@ -229,7 +234,11 @@ def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | No
     res.frames["anatomical"] = {"origin": p.copy(), "rotation": np.column_stack([ant, up, np.cross(ant, up)])}
 
     # ---- subtalar axis --------------------------------------------------------------------
-    _subtalar(surface, res, p, float(fit.radius), ant, up, calcaneus)
+    size = min(1.0, float(np.ptp(V @ ax[:, 0])) / ADULT_TALUS_LENGTH)
+    if size < 1.0:
+        res.notes.append(f"{name}: {size * ADULT_TALUS_LENGTH * 1e3:.0f} mm long, subtalar joint searched at "
+                         f"{size:.2f} x adult size")
+    _subtalar(surface, res, p, float(fit.radius), ant, up, calcaneus, size)
     if ambiguous and "talar_head_centre" not in res.landmarks:
         res.flag(FLAG_LOW_CONFIDENCE, "talar head not clearly anterior")
     return res
@@ -356,28 +365,29 @@ def _dome_zone(V, Nrm, f0, up_hint):
     return m
 
 
-def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
+def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus, u: float = 1.0):
+    """Talar head and posterior facet spheres, the subtalar axis through them; lengths in units of `u` x adult."""
     V, Nrm = surface.vertices, surface.normals
     q = (V - dome_p) @ ant
     # talar head: anterior block, normals pointing forward
-    head_zone = (q > q.max() - 0.025) & (Nrm @ ant > 0.2)
+    head_zone = (q > q.max() - 0.025 * u) & (Nrm @ ant > 0.2)
     head = None
     if head_zone.sum() >= 20:
-        peaks = hough_centres(V[head_zone], Nrm[head_zone], HEAD_RADII, inward=False, tol=0.0015)
+        peaks = hough_centres(V[head_zone], Nrm[head_zone], u * HEAD_RADII, inward=False, tol=0.0015 * u)
         if peaks:
             _, c0, r0 = peaks[0]
             try:
                 # narrow band, near-radial normals: the neck's blend must not flatten the head
                 head, hsel = refine_sphere(V, Nrm, c0, r0, band=max(0.001, 0.05 * r0), min_cos=0.8,
-                                           mask=q > q.max() - 0.035, iterations=6)
+                                           mask=q > q.max() - 0.035 * u, iterations=6)
             except FitError as exc:
                 res.flag(FLAG_LOW_CONFIDENCE, f"talar head sphere: {exc}")
     # posterior calcaneal facet: inferior, behind the dome centre
-    facet_zone = (Nrm @ (-up) > 0.3) & (q < 0.01)
+    facet_zone = (Nrm @ (-up) > 0.3) & (q < 0.01 * u)
     near_cal = _near(surface, calcaneus, 0.006)
     if near_cal is not None and (near_cal & facet_zone).sum() >= 20:
         facet_zone &= near_cal
-    facet = _facet_sphere(surface, facet_zone, up, concave=True) if facet_zone.sum() >= 20 else None
+    facet = _facet_sphere(surface, facet_zone, up, concave=True, u=u) if facet_zone.sum() >= 20 else None
     if facet is None:
         res.flag(FLAG_LOW_CONFIDENCE, "posterior talocalcaneal facet not found")
     if head is None or facet is None:
@@ -395,11 +405,11 @@ def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
     # the same joint seen from the calcaneus: its convex posterior talar facet (a check of the talar one)
     if calcaneus is not None:
         cq = (calcaneus.vertices - dome_p) @ ant
-        czone = (calcaneus.normals @ up > 0.3) & (cq < 0.01)
+        czone = (calcaneus.normals @ up > 0.3) & (cq < 0.01 * u)
         near_tal = _near(calcaneus, surface, 0.006)
         if near_tal is not None:
             czone &= near_tal
-        cf = _facet_sphere(calcaneus, czone, up, concave=False) if czone.sum() >= 20 else None
+        cf = _facet_sphere(calcaneus, czone, up, concave=False, u=u) if czone.sum() >= 20 else None
         if cf is not None:
             res.landmarks["calcaneal_facet_centre"] = Landmark(cf.centre.copy(), cf.cov)
             res.fits["calcaneal_posterior_facet"] = {"type": "sphere", "centre": cf.centre.tolist(),
@@ -413,7 +423,7 @@ def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus):
                                              "n_points": int(facet.n_points), "method": "normal lines"}
 
 
-def _facet_sphere(surface, zone, up, concave: bool):
+def _facet_sphere(surface, zone, up, concave: bool, u: float = 1.0):
     """Sphere of a posterior talocalcaneal facet (concave on the talus, convex on the calcaneus), or None.
 
     Hough votes along the normals in `zone`, every peak refined with a narrow
@@ -427,8 +437,8 @@ def _facet_sphere(surface, zone, up, concave: bool):
     `FACET_INLIER`) wins, so a fixed tolerance does not favour large radii.
     """
     V, Nrm, A = surface.vertices, surface.normals, surface.areas
-    peaks = hough_centres(V[zone], Nrm[zone], FACET_RADII, inward=concave, tol=0.002, n_peaks=4,
-                          min_separation=0.008)
+    peaks = hough_centres(V[zone], Nrm[zone], u * FACET_RADII, inward=concave, tol=0.002 * u, n_peaks=4,
+                          min_separation=0.008 * u)
     best = None
     for _, c0, r0 in peaks:
         try:
@@ -438,7 +448,7 @@ def _facet_sphere(surface, zone, up, concave: bool):
             continue
         f = _normal_line_sphere(V[fsel], Nrm[fsel], A[fsel])
         below = (f.centre - (A[fsel] @ V[fsel]) / A[fsel].sum()) @ up < 0
-        if not (below and 0.008 < f.radius < FACET_MAX_RADIUS):
+        if not (below and 0.008 * u < f.radius < FACET_MAX_RADIUS * u):
             continue
         inl = zone & (np.abs(np.linalg.norm(V - f.centre, axis=1) - f.radius) < FACET_INLIER)
         score = (float(A[inl].sum()) if f.rms < 0.0012 else 0.0, -f.rms)
@@ -451,5 +461,5 @@ def _facet_sphere(surface, zone, up, concave: bool):
     inl = zone & (np.abs(np.linalg.norm(V - f.centre, axis=1) - f.radius) < FACET_INLIER)
     if inl.sum() >= 20:
         g = _normal_line_sphere(V[inl], Nrm[inl], A[inl])
-        f = g if 0.008 < g.radius < FACET_MAX_RADIUS else f
+        f = g if 0.008 * u < g.radius < FACET_MAX_RADIUS * u else f
     return f
