@@ -14,7 +14,7 @@ from lowerlimb.bones import BONE_NAMES, canonical_bone_name, side_of
 from lowerlimb.tasks import run_tasks
 from personalize.io import MESH_SUFFIXES, POINT_SUFFIXES
 
-from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_NOT_CLOSED, FLAG_SIDE_MISMATCH, Axis,
+from .common import (FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_NOT_CLOSED, FLAG_SIDE_MISMATCH, FLAG_TRUNCATED, Axis,
                      BoneLandmarks, Landmark, LandmarkSet)
 from .surface import Surface, as_surface, even_sampling
 from .femur import detect_femur
@@ -239,12 +239,13 @@ def _detection_graph(names: list[str], prepare, run, surf: dict, ls: LandmarkSet
     prep("pelvis")
 
     def _pelvis():
-        ant = None
-        for s in ("r", "l"):
-            f = ls.bones.get(f"femur_{s}")
-            if f is not None and "anatomical" in f.frames and FLAG_LOW_CONFIDENCE not in f.flags:
-                ant = f.frames["anatomical"]["rotation"][:, 0]
-                break
+        # a confident femur's anterior first; else a whole one flagged for something else (its knee estimates
+        # disagreeing, say): its condyles still face forward, and the pelvis' own cue (the symphysis 2-12 mm in
+        # front of the hip centres on the real sets) is the weaker one
+        femurs = [f for f in (ls.bones.get(f"femur_{s}") for s in ("r", "l")) if f is not None and "anatomical" in f.frames]
+        ranked = ([f for f in femurs if FLAG_LOW_CONFIDENCE not in f.flags]
+                  + [f for f in femurs if FLAG_LOW_CONFIDENCE in f.flags and FLAG_TRUNCATED not in f.flags])
+        ant = ranked[0].frames["anatomical"]["rotation"][:, 0] if ranked else None
         run("pelvis", lambda: detect_pelvis(surf["pelvis"], "pelvis", anterior_hint=ant))
     if "pelvis" in present:
         add("pelvis", ("prep pelvis", "femur_r", "femur_l"), _pelvis)

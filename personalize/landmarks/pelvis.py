@@ -59,7 +59,7 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
             f, sel = refine_sphere(V, Nrm, c0, r0, band=max(0.002 * u, 0.08 * r0), convex=False, min_cos=0.7)
         except FitError:
             continue
-        if not 0.014 * u < f.radius < 0.04 or sel.sum() < 50:
+        if not 0.014 * u < f.radius < 0.04 * u or sel.sum() < 50:
             continue
         if any(np.linalg.norm(np.asarray(f.centre) - g[0].centre) < 0.03 * u for g in fits):
             continue
@@ -69,7 +69,7 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
     for i in range(len(fits)):
         for j in range(i + 1, len(fits)):
             d = np.linalg.norm(fits[i][0].centre - fits[j][0].centre)
-            if 0.1 * u < d < 0.3:
+            if 0.1 * u < d < 0.3 * u:
                 s = fits[i][1].sum() + fits[j][1].sum()
                 if pair is None or s > pair[0]:
                     pair = (s, i, j)

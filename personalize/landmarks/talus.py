@@ -393,6 +393,12 @@ def _subtalar(surface, res, dome_p, dome_r, ant, up, calcaneus, u: float = 1.0):
     if head is None or facet is None:
         res.flag(FLAG_LOW_CONFIDENCE, "subtalar axis not found")
         return
+    if (facet.centre - dome_p) @ ant > 0:
+        # the posterior facet's centre lies 12-24 mm behind the dome centre on ICL-MRI, LHDL-CT and MC22; on both
+        # TLEM2-MRI tali a small concave patch in front of it (8-10 mm radius, between the middle facet and the
+        # sinus tarsi) wins and the axis comes out nearly vertical
+        res.notes.append(f"{res.bone}: posterior talocalcaneal facet found in front of the talar dome centre; "
+                         "check the subtalar axis")
     hl = Landmark(np.asarray(head.centre, float), sphere_centre_cov(head))
     fl = Landmark(facet.centre.copy(), facet.cov)
     res.landmarks["talar_head_centre"] = hl
