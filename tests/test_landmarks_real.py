@@ -216,3 +216,33 @@ def test_icl_bones_at_a_childs_size_give_the_scaled_joints(icl, shared_data, tmp
         for a, b in ((j.rotation, child.rotation), (j.parent.rotation, child.parent.rotation)):
             ang = np.degrees(np.arccos(np.clip(np.sum(a * b, axis=0), -1, 1))).max()
             assert dist < mm and ang < deg, (name, dist, ang)
+
+
+@pytest.mark.parametrize("name", ["LHDL_CT", "TLEM2_MRI"])
+def test_a_childs_size_pelvis_keeps_its_frame(shared_data, tmp_path, name):
+    """Pelvis and femurs of LHDL_CT and TLEM2_MRI shrunk to 0.6: the hip joints' pelvic frames are the adult
+    ones (0.0 deg measured).  Before: LHDL_CT's was turned 177 deg (its femur, flagged for disagreeing knee
+    estimates, gave no anterior, and the pelvis' own symphysis cue flipped), TLEM2_MRI's 159 deg (a 38 mm
+    spurious socket passed the adult radius limit)."""
+    import trimesh
+
+    from personalize.surfaces import load_bones
+
+    src = shared_data / "bones" / name
+    files = [f for f in sorted(src.glob("*.ply")) if f.stem == "pelvis_no_sacrum" or f.stem.startswith("femur_")]
+    (tmp_path / "adult").mkdir()
+    (tmp_path / "child").mkdir()
+    s = 0.6
+    for f in files:
+        m = trimesh.load(str(f), process=False)
+        m.export(str(tmp_path / "adult" / f.name))
+        m.vertices = np.asarray(m.vertices) * s
+        m.export(str(tmp_path / "child" / f.name))
+    adult = joints_from_landmarks(detect_landmarks(load_bones(tmp_path / "adult")))[0]
+    child = joints_from_landmarks(detect_landmarks(load_bones(tmp_path / "child")))[0]
+    hips = [j for j in adult if j.startswith("hip_")]
+    assert hips
+    for j in hips:
+        assert np.linalg.norm(child[j].origin - s * adult[j].origin) < 0.5e-3
+        ang = np.degrees(np.arccos(np.clip(np.sum(adult[j].parent.rotation * child[j].parent.rotation, axis=0), -1, 1)))
+        assert ang.max() < 1.0, (j, ang)
