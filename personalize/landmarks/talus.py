@@ -85,6 +85,10 @@ DOME_CONTACT_MARGIN: float | None = 0.003
 #: 80 deg from the flexion axis.  On LHDL-CT tali voxelised at 1.3 mm the patch fit landed there (rms 1.0 mm,
 #: the true axis 0.2-0.3 mm, with more points), an ankle axis 23 deg off after the cross-check.
 DOME_SEED_ANGLES = (0.0, -30.0, 30.0, -60.0, 60.0)
+#: deg, the most the neutral-pose re-selection may turn the dome axis: it changes which points are the dome,
+#: not the dome (0-4 deg on ICL-MRI, LHDL-CT, TLEM2-MRI's tali and MC22's right one); on MC22's left talus it
+#: turned a 0.38 mm rms cylinder 84 deg onto a 1.05 mm one
+DOME_NEUTRAL_MAX_TURN_DEG = 20.0
 DOME_SEED_MIN_SHARE = 0.7
 
 
@@ -328,9 +332,13 @@ def _neutral_dome(surface: Surface, tibia: Surface, fit, p, u, talus_up, tibia_u
             raise FitError("the talus turned to its neutral pose does not meet the tibia")
         mask = patches[0]
         f0 = fit_cylinder(V[mask], normals=Nrm[mask], axis_hint=u, require_convergence=False)
+        u_in = u
         fit, sel, p, u = refine_cylinder(V, Nrm, f0.point, orient(unit(np.asarray(f0.axis, float)), u), f0.radius,
                                          band=max(0.0015, 0.08 * f0.radius), min_cos=0.6,
                                          mask=_dome_zone(V, Nrm, f0, talus_up) & mask)
+        turn = float(np.degrees(np.arccos(np.clip(abs(u @ u_in), -1.0, 1.0))))
+        if turn > DOME_NEUTRAL_MAX_TURN_DEG:
+            raise FitError(f"the neutral-pose dome turned the axis {turn:.0f} deg")
     return fit, sel, p, u
 
 
