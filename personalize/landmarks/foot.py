@@ -24,7 +24,7 @@ from lowerlimb.geometry import unit
 from lowerlimb.bones import side_of
 
 from .common import FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark
-from .shape_fits import isotropic_cov, perpendicular, principal_axes, refine_sphere, sphere_centre_cov
+from .shape_fits import isotropic_cov, perpendicular, principal_axes, refine_sphere, size_unit, sphere_centre_cov
 from .surface import Surface, extreme_vertex
 
 __all__ = ["detect_calcn", "detect_toes"]
@@ -112,9 +112,7 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
     fwd = unit(perpendicular(long_ax, up))
     q = (V - c) @ fwd
     L = float(q.max() - q.min())
-    u = min(1.0, float(np.ptp(V @ long_ax)) / ADULT_FOOT_LENGTH)     # the lengths' unit (1 for adults)
-    if u < 1.0:
-        res.notes.append(f"{name}: {u * ADULT_FOOT_LENGTH * 1e3:.0f} mm long, searched at {u:.2f} x adult size")
+    u = size_unit(V, long_ax, ADULT_FOOT_LENGTH, res, "long")
     back = q < q.min() + 0.25 * L
     front = q > q.max() - 0.25 * L
     if talus is not None:

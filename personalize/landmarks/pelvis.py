@@ -21,8 +21,8 @@ from lowerlimb.errors import FitError
 from lowerlimb.geometry import unit
 
 from .common import FLAG_LOW_CONFIDENCE, BoneLandmarks, Landmark
-from .shape_fits import (hough_centres, isotropic_cov, perpendicular, principal_axes, refine_sphere, sphere_centre_cov,
-                         sphere_fit_json)
+from .shape_fits import (hough_centres, isotropic_cov, perpendicular, principal_axes, refine_sphere, size_unit,
+                         sphere_centre_cov, sphere_fit_json)
 from .surface import Surface, extreme_vertex
 
 __all__ = ["detect_pelvis"]
@@ -48,10 +48,7 @@ def detect_pelvis(surface: Surface, name: str = "pelvis", anterior_hint: np.ndar
     res = BoneLandmarks(bone=name, side=None)
     V, Nrm, A = surface.vertices, surface.normals, surface.areas
     cen = (A @ V) / A.sum()
-    _, axes, _ = principal_axes(V, A)
-    u = min(1.0, float(np.ptp(V @ axes[:, 0])) / ADULT_PELVIS_WIDTH)   # the search's length unit (1 for adults)
-    if u < 1.0:
-        res.notes.append(f"{name}: {u * ADULT_PELVIS_WIDTH * 1e3:.0f} mm wide, searched at {u:.2f} x adult size")
+    u = size_unit(V, principal_axes(V, A)[1][:, 0], ADULT_PELVIS_WIDTH, res, "wide")
     peaks = hough_centres(V, Nrm, u * ACETABULUM_RADII, inward=True, tol=0.0015 * u, n_peaks=8, min_separation=0.03 * u)
     fits = []
     for _, c0, r0 in peaks:

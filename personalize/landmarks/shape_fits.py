@@ -45,6 +45,19 @@ def principal_axes(points: np.ndarray, weights: np.ndarray | None = None):
     return c, vec[:, order], np.sqrt(np.maximum(ev[order], 0))
 
 
+def size_unit(points, axis, adult: float, res, what: str) -> float:
+    """The search's unit of length for a bone: its extent along `axis` over `adult` (m), at most 1.
+
+    Detectors written for adult bones keep their constants (1) on every adult of the real sets; a smaller
+    (child's) bone is searched at its own size, its constants times this unit, and `res` gets a note.
+    """
+    extent = float(np.ptp(np.asarray(points, float) @ np.asarray(axis, float)))
+    u = min(1.0, extent / adult)
+    if u < 1.0:
+        res.notes.append(f"{res.bone}: {extent * 1e3:.0f} mm {what}, searched at {u:.2f} x adult size")
+    return u
+
+
 def hough_centres(points, normals, radii, *, inward: bool, tol: float, n_peaks: int = 1,
                   min_separation: float = 0.0, max_points: int = 2500):
     """Vote for centres of spheres (or cylinder axes) tangent to the surface.

@@ -31,7 +31,7 @@ from lowerlimb.geometry import orient, unit
 
 from .common import FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark
 from .shape_fits import (axis_sd_deg, hough_centres, line_through, perpendicular, principal_axes, refine_cylinder,
-                         refine_sphere, sphere_centre_cov)
+                         refine_sphere, size_unit, sphere_centre_cov)
 from .surface import Surface, largest_patch
 
 __all__ = ["detect_talus"]
@@ -238,10 +238,7 @@ def detect_talus(surface: Surface, name: str = "talus_r", *, tibia: Surface | No
     res.frames["anatomical"] = {"origin": p.copy(), "rotation": np.column_stack([ant, up, np.cross(ant, up)])}
 
     # ---- subtalar axis --------------------------------------------------------------------
-    size = min(1.0, float(np.ptp(V @ ax[:, 0])) / ADULT_TALUS_LENGTH)
-    if size < 1.0:
-        res.notes.append(f"{name}: {size * ADULT_TALUS_LENGTH * 1e3:.0f} mm long, subtalar joint searched at "
-                         f"{size:.2f} x adult size")
+    size = size_unit(V, ax[:, 0], ADULT_TALUS_LENGTH, res, "long (subtalar joint)")
     _subtalar(surface, res, p, float(fit.radius), ant, up, calcaneus, size)
     if ambiguous and "talar_head_centre" not in res.landmarks:
         res.flag(FLAG_LOW_CONFIDENCE, "talar head not clearly anterior")
