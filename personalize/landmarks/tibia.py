@@ -35,16 +35,20 @@ __all__ = ["detect_tibia", "detect_fibula", "split_components", "merge_surfaces"
 PLAFOND_RADII = np.arange(0.012, 0.0401, 0.002)
 
 
-def split_components(surface: Surface) -> list[Surface]:
-    """Connected components of a surface, largest (by area) first."""
+def _vertex_components(F: np.ndarray, n: int) -> tuple[int, np.ndarray]:
+    """Number of connected components of the `n` vertices joined by the edges of faces `F`, and each one's label."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    return connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+
+
+def split_components(surface: Surface) -> list[Surface]:
+    """Connected components of a surface, largest (by area) first."""
     F = surface.faces
     n = len(surface.vertices)
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    k, lab = connected_components(g, directed=False)
+    k, lab = _vertex_components(F, n)
     if k == 1:
         return [surface]
     out = []
@@ -99,16 +103,11 @@ def fused_fibular_shaft(tib: Surface, h: np.ndarray, lo: float, hi: float) -> np
     `hi` (m, `h` the vertices' heights along the shaft) still splits into two shafts.  The smaller one is
     the fibula when it is large and long enough (`FUSED_FIBULA_AREA`, `FUSED_FIBULA_SPAN`).
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     band = (h > lo) & (h < hi)
     F = tib.faces[band[tib.faces].all(axis=1)]
     if len(F) < 100:
         return None
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    n = len(tib.vertices)
-    _, lab = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    _, lab = _vertex_components(F, len(tib.vertices))
     used = np.unique(F)
     parts = sorted((np.flatnonzero(lab == c) for c in np.unique(lab[used])), key=lambda v: -tib.areas[v].sum())
     if len(parts) < 2:
