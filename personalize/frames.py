@@ -520,9 +520,8 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
             if ax is None or "foot" not in cal.frames:
                 dropped[j] = "metatarsal heads not detected"
             else:
-                m1 = cal.landmarks.get("met1_head_centre")
-                m5 = cal.landmarks.get("met5_head_centre")
-                cov = 0.25 * (m1.cov + m5.cov) if m1 is not None and m5 is not None else (0.002 ** 2) * np.eye(3)
+                c = cal.landmarks.get("mtp_centre")
+                cov = c.cov if c is not None else (0.002 ** 2) * np.eye(3)
                 o = np.asarray(ax.point, float)
                 R = frame_zy(ax.direction, cal.frames["foot"]["rotation"][:, 1])
                 joints[j] = _joint(j, "mtp", o, cov, JointFrame(f"calcn_{s}", o.copy(), R.copy()),

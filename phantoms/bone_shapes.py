@@ -460,8 +460,12 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     ta.axes = {"ankle_axis": (ankle_body.copy(), Za),
                "subtalar_axis": (apply_pose(body_from_talus, facet_c), body_from_talus[:3, :3] @ st_dir_t)}
 
-    # ---------------------------------------------------------------- toes (foot axes, origin mtp midpoint)
-    mtp_mid = (m1 + m5) / 2
+    # ---------------------------------------------------------------- toes (foot axes, origin mtp centre)
+    # the mtp as the detector defines it: the least-squares line through the five head centres, at their mean
+    hcs = np.array([hc for hc, _ in heads])
+    mtp_mid = hcs.mean(axis=0)
+    mtp_dir = np.linalg.svd(hcs - mtp_mid)[2][0]
+    mtp_dir = mtp_dir if mtp_dir @ (m5 - m1) > 0 else -mtp_dir
     toe_parts = []
     lengths = [(0.030, 0.026), (0.024, 0.020), (0.022, 0.018), (0.020, 0.016), (0.018, 0.015)]
     for (hc, hr), (l1, l2) in zip(heads, lengths):
@@ -477,7 +481,7 @@ def _build_leg(d: dict, params: PhantomParams, hip_body: np.ndarray, ground_y: f
     toes_sdf_f = Difference(Union(tuple(toe_parts), k=0.002 * s), Offset(heads_u, 0.0012 * s), k=kc)
     toes_sdf = Transformed(toes_sdf_f, pose_matrix(-mtp_mid))
     tob = BoneShape(toes_sdf, body_from_foot @ pose_matrix(mtp_mid))
-    tob.axes = {"mtp_axis": (F(mtp_mid), Rf @ unit(m5 - m1))}
+    tob.axes = {"mtp_axis": (F(mtp_mid), Rf @ mtp_dir)}
     bones["toes"] = tob
     return bones, floor
 

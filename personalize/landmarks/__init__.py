@@ -225,11 +225,12 @@ def _detection_graph(names: list[str], prepare, run, surf: dict, ls: LandmarkSet
                 malleolar_markers(shank.get("tibia_surface"), fib_s, t, ls.bones[fib], a.axes["ankle_axis"].direction)
         add(f"malleoli {s}", (tib, fib, tal), _malleoli)
 
-        def _calcn(tib=tib, tal=tal, cal=cal):
+        def _calcn(tib=tib, tal=tal, cal=cal, toe=toe):
             up, right = _up_right(ls, tib, tal)
-            run(cal, lambda: detect_calcn(surf[cal], cal, up_hint=up, right_hint=right, talus=surf.get(tal)))
+            run(cal, lambda: detect_calcn(surf[cal], cal, up_hint=up, right_hint=right, talus=surf.get(tal),
+                                          toes=surf.get(toe)))
         if cal in present:
-            add(cal, (f"prep {cal}", f"prep {tal}", tib, tal), _calcn)
+            add(cal, (f"prep {cal}", f"prep {tal}", f"prep {toe}", tib, tal), _calcn)
         if fem in present:
             add(fem, (f"prep {fem}",), lambda fem=fem: run(fem, lambda: detect_femur(surf[fem], fem)))
         prep(toe)

@@ -24,8 +24,9 @@ from lowerlimb.geometry import unit
 from lowerlimb.bones import side_of
 
 from .common import FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark
-from .shape_fits import isotropic_cov, perpendicular, principal_axes, refine_sphere, size_unit, sphere_centre_cov
-from .surface import Surface, extreme_vertex
+from .shape_fits import (isotropic_cov, perpendicular, principal_axes, refine_sphere, size_unit, sphere_centre_cov,
+                         sphere_fit_json)
+from .surface import Surface, extreme_vertex, largest_patch, vertex_components
 
 __all__ = ["detect_calcn", "detect_toes"]
 
@@ -60,6 +61,135 @@ TOE_MAX_AHEAD_OF_D1M = 0.02
 ADULT_FOOT_LENGTH = 0.165
 
 
+#: m, largest distance between a toes component and the forefoot for it to be a proximal phalanx (the
+#: metatarsophalangeal joint spaces: 0.3-5.2 mm on LHDL-CT, both TLEM2-MRI and both MC22 feet; the middle
+#: phalanges lie 10 mm and more from the forefoot)
+PHALANX_MAX_GAP = 0.008
+#: m, how much further than the phalanges' (median) closest approach a forefoot vertex may lie from the toes to be
+#: on a metatarsal head's articular surface
+MT_HEAD_BAND = 0.003
+#: largest fraction of the calcaneus-with-forefoot surface within `PHALANX_MAX_GAP` / 2 of the toes: beyond it
+#: the two meshes overlap and no articular surface can be told (ICL-MRI's toes mesh holds its metatarsals too:
+#: 71 % of its forefoot lies within 4 mm of it; LHDL-CT 2.6 %, TLEM2-MRI 2.0-2.3 %)
+MTP_MAX_INTERFACE_FRACTION = 0.15
+#: m, radii admitted for a metatarsal head's articular sphere (times the foot's size unit; 4.8-13.1 mm on LHDL-CT
+#: and both TLEM2-MRI feet, the first head the largest), and the largest rms over the radius
+MT_HEAD_RADIUS = (0.004, 0.018)
+MT_HEAD_MAX_RMS = 0.25
+#: least cosine between a forefoot vertex's normal and the direction to its nearest toes point on a head's
+#: articular surface
+MT_HEAD_MIN_FACING = 0.5
+#: added sd of an mtp found from the plantar contact spheres of the first and fifth heads rather than their
+#: articular surfaces: centre as a fraction of those spheres' radius, axis in degrees (see `_articular_mtp`)
+PLANTAR_MTP_SD = (1.0, 6.0)
+
+
+def metatarsal_heads(surface: Surface, toes: Surface, med: np.ndarray, u: float = 1.0) -> tuple[list, str | None]:
+    """Spheres of the metatarsal heads' articular surfaces, medial to lateral, or ``([], why)``.
+
+    A head's articular surface is the part of the forefoot facing its proximal phalanx: the forefoot vertices
+    within a gap of the toes whose normal points to the nearest toes point (cosine above
+    `MT_HEAD_MIN_FACING`), split into edge-connected patches, the five largest kept.  The gap is the joint
+    space plus `MT_HEAD_BAND`: the median closest approach of the proximal phalanges (the toes mesh's
+    connected components within `PHALANX_MAX_GAP` of the forefoot; 1.0 mm on LHDL-CT, 3.3 mm on MC22's right
+    foot), or ``PHALANX_MAX_GAP / 2`` when the toes mesh has fewer than three (phalanges fused by the
+    segmentation).  Each patch gets a sphere (`personalize.fitting.fit_sphere`, points and normals), kept when
+    its radius lies in `MT_HEAD_RADIUS` (times `u`) and its rms below `MT_HEAD_MAX_RMS` of it.  Returns
+    ``[(fit, n_points), ...]`` sorted along `med` (medial first) and None, or fewer than three heads and why.
+    """
+    from personalize.fitting import fit_sphere
+
+    d, k = toes.tree().query(surface.vertices, distance_upper_bound=PHALANX_MAX_GAP + MT_HEAD_BAND)
+    near = np.isfinite(d)
+    frac = float(surface.areas[near & (d < 0.5 * PHALANX_MAX_GAP)].sum() / surface.areas.sum())
+    if frac > MTP_MAX_INTERFACE_FRACTION:
+        return [], (f"the toes mesh overlaps the forefoot ({100 * frac:.0f} % of it within "
+                    f"{0.5e3 * PHALANX_MAX_GAP:.0f} mm): no metatarsal head articular surface told apart")
+    # an articular surface faces its partner: the forefoot's normal points to the nearest toes point
+    w = np.zeros(len(d))
+    w[near] = np.einsum("ij,ij->i", toes.vertices[k[near]] - surface.vertices[near], surface.normals[near])
+    near &= w > MT_HEAD_MIN_FACING * np.where(near, d, 0.0)
+    _, lab = vertex_components(toes.faces, len(toes.vertices))
+    comp = np.full(len(d), -1)
+    comp[near] = lab[k[near]]
+    closest = sorted(float(d[comp == c].min()) for c in np.unique(comp[near]))
+    closest = [x for x in closest if x < PHALANX_MAX_GAP][:5]
+    gap = MT_HEAD_BAND + (float(np.median(closest)) if len(closest) >= 3 else 0.5 * PHALANX_MAX_GAP - MT_HEAD_BAND)
+    surfaces = largest_patch(surface, near & (d < gap), n=5)
+    heads = []
+    for sel in surfaces:
+        n = int(sel.sum())
+        if n < 10:
+            continue
+        try:
+            f = fit_sphere(surface.vertices[sel], normals=surface.normals[sel])
+        except FitError:
+            continue
+        if MT_HEAD_RADIUS[0] * u < f.radius < MT_HEAD_RADIUS[1] * u and f.rms < MT_HEAD_MAX_RMS * f.radius:
+            heads.append((f, n))
+    heads.sort(key=lambda h: -float(np.asarray(h[0].centre) @ med))
+    return heads, (None if len(heads) >= 3 else f"{len(heads)} metatarsal head articular surface(s) found against "
+                   "the toes (3 needed)")
+
+
+def _mtp_from_heads(heads, side: str) -> tuple[Axis, Landmark, np.ndarray]:
+    r"""The mtp axis and centre from the metatarsal heads' sphere centres :math:`c_i`.
+
+    The axis is the least-squares line through the centres (the first principal direction :math:`a` of the
+    :math:`c_i - \bar c`, pointing right), the centre their mean :math:`\bar c`.  The heads lie on an arc
+    (the second head furthest forward), so no single hinge passes through all and where the joint centre lies
+    is a convention: the centre's spread returned is isotropic, :math:`(\sum_i |r_i|^2 / 2n) I`, with
+    :math:`r_i` the centres' offsets perpendicular to the line (on LHDL-CT the expert's mtp lies 6.5 mm from
+    the centroid, 4.7 mm off the line).
+    The axis sd propagates the centres' fit covariances: :math:`\sqrt{\bar\sigma^2 / \sum_i t_i^2}` rad,
+    :math:`t_i` the centres' positions along the line and :math:`\bar\sigma^2` their mean per-component variance.
+    """
+    C = np.array([np.asarray(f.centre, float) for f, _ in heads])
+    covs = [sphere_centre_cov(f) for f, _ in heads]
+    c = C.mean(axis=0)
+    D = C - c
+    a = np.linalg.svd(D, full_matrices=False)[2][0]
+    # the medial-most head first: right is medial -> lateral on a right foot, lateral -> medial on a left one
+    a = a if (D[-1] - D[0]) @ a > 0 else -a
+    a = a if side == "r" else -a
+    t = D @ a
+    R = D - np.outer(t, a)
+    var = float(np.mean([np.trace(k) for k in covs]) / 3.0)
+    sd = float(np.degrees(np.sqrt(var / max(float(t @ t), 1e-12))))
+    centre = Landmark(c, sum(covs) / len(covs) ** 2)
+    return Axis(point=c.copy(), direction=a, sd_deg=sd), centre, float(np.sum(R * R) / (2 * len(C))) * np.eye(3)
+
+
+def _articular_mtp(res: BoneLandmarks, surface: Surface, toes: Surface | None, med, u: float, side: str,
+                   width: float) -> None:
+    """The mtp axis and centre from the metatarsal heads' articular spheres (`_mtp_from_heads`) when at least
+    three heads spanning half the forefoot's width (`width`, D1M to D5M) are found; else the plantar contact
+    spheres' line stays, its uncertainty widened by `PLANTAR_MTP_SD` and flagged."""
+    heads, why = metatarsal_heads(surface, toes, med, u) if toes is not None else ([], "no toes surface")
+    if heads and why is None:
+        span = float((np.asarray(heads[0][0].centre) - np.asarray(heads[-1][0].centre)) @ med)
+        if span < 0.5 * width:
+            why = (f"the metatarsal head articular surfaces found span {1e3 * span:.0f} mm of the forefoot's "
+                   f"{1e3 * width:.0f} mm")
+    if why is None:
+        axis, centre, spread = _mtp_from_heads(heads, side)
+        res.axes["mtp_axis"] = axis
+        res.landmarks["mtp_centre"] = Landmark(centre.position, centre.cov + spread)
+        for i, (f, n) in enumerate(heads):
+            res.fits[f"metatarsal_head_{i + 1}_sphere"] = sphere_fit_json(f, n)
+        return
+    if "mtp_axis" not in res.axes:
+        return
+    k_c, k_a = PLANTAR_MTP_SD
+    r = np.mean([res.fits[f"{m}_sphere"]["radius"] for m in ("met1", "met5")])
+    c = res.landmarks["mtp_centre"]
+    res.landmarks["mtp_centre"] = Landmark(c.position, c.cov + isotropic_cov(k_c * r))
+    ax = res.axes["mtp_axis"]
+    res.axes["mtp_axis"] = Axis(ax.point, ax.direction, float(np.hypot(ax.sd_deg, k_a)))
+    if toes is not None:
+        res.flag(FLAG_LOW_CONFIDENCE, f"mtp from the plantar metatarsal head spheres ({why})")
+
+
 def _second_ray_dorsum(V, X, up, med, d1m, d5m, fore, u: float = 1.0) -> np.ndarray | None:
     """Plug-in-Gait's TOE site: the most dorsal point over the second metatarsal head (scanner, m), or None.
 
@@ -84,7 +214,7 @@ def _second_ray_dorsum(V, X, up, med, d1m, d5m, fore, u: float = 1.0) -> np.ndar
 
 
 def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right_hint=None,
-                 talus: Surface | None = None) -> BoneLandmarks:
+                 talus: Surface | None = None, toes: Surface | None = None) -> BoneLandmarks:
     """Detect heel / metatarsal landmarks, ground contacts, foot axes and the foot frame.
 
     Parameters
@@ -95,6 +225,8 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
         Superior and rightward directions from the leg (tibia / talus frames).
     talus : Surface, optional
         Used for the superior direction when `up_hint` is not given.
+    toes : Surface, optional
+        The phalanges: the metatarsal heads' articular surfaces face them (`metatarsal_heads`).
     """
     res = BoneLandmarks(bone=name, side=side_of(name))
     V, Nrm, A = surface.vertices, surface.normals, surface.areas
@@ -222,6 +354,10 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
             np.sqrt(np.trace(res.landmarks["met1_head_centre"].cov + res.landmarks["met5_head_centre"].cov) / 2)
             / np.linalg.norm(d))))
         res.axes["mtp_axis"] = ax5
+        res.landmarks["mtp_centre"] = Landmark(mid_head, 0.25 * (res.landmarks["met1_head_centre"].cov
+                                                                + res.landmarks["met5_head_centre"].cov))
+    _articular_mtp(res, surface, toes, med, u, side, float((res.landmarks[f"{P}D1M"].position
+                                                            - res.landmarks[f"{P}D5M"].position) @ med))
     res.frames["anatomical"] = {"origin": c, "rotation": np.column_stack([X, up, Z])}
     return res
 

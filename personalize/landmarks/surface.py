@@ -19,7 +19,7 @@ from lowerlimb.geometry import vertex_normals
 from .common import Landmark
 
 __all__ = ["Surface", "SUBDIVIDED_EDGE", "COARSE_EDGE_FRACTION", "even_sampling", "as_surface",
-           "landmark_from_vertex", "extreme_vertex", "edge_curvature", "largest_patch"]
+           "landmark_from_vertex", "extreme_vertex", "edge_curvature", "largest_patch", "vertex_components"]
 
 
 @dataclass(frozen=True)
@@ -258,6 +258,15 @@ def edge_curvature(surface: Surface) -> np.ndarray:
     H = ks / np.maximum(cnt, 1)
     object.__setattr__(surface, "_edge_curvature", H)
     return H
+
+
+def vertex_components(F: np.ndarray, n: int) -> tuple[int, np.ndarray]:
+    """Number of connected components of the `n` vertices joined by the edges of faces `F`, and each one's label."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    return connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
 
 
 def largest_patch(surface: Surface, mask: np.ndarray, n: int = 1) -> list[np.ndarray]:

@@ -28,27 +28,18 @@ from personalize.fitting import fit_cylinder
 from .common import FLAG_LOW_CONFIDENCE, FLAG_NAME_MISMATCH, FLAG_TRUNCATED, Axis, BoneLandmarks, Landmark
 from .long_bones import long_bone_axes, shaft_line
 from .shape_fits import axis_sd_deg, isotropic_cov, perpendicular, principal_axes, refine_cylinder
-from .surface import Surface, edge_curvature, extreme_vertex, largest_patch
+from .surface import Surface, edge_curvature, extreme_vertex, largest_patch, vertex_components
 
 __all__ = ["detect_tibia", "detect_fibula", "split_components", "merge_surfaces", "tibia_surface"]
 
 PLAFOND_RADII = np.arange(0.012, 0.0401, 0.002)
 
 
-def _vertex_components(F: np.ndarray, n: int) -> tuple[int, np.ndarray]:
-    """Number of connected components of the `n` vertices joined by the edges of faces `F`, and each one's label."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    return connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
-
-
 def split_components(surface: Surface) -> list[Surface]:
     """Connected components of a surface, largest (by area) first."""
     F = surface.faces
     n = len(surface.vertices)
-    k, lab = _vertex_components(F, n)
+    k, lab = vertex_components(F, n)
     if k == 1:
         return [surface]
     out = []
@@ -107,7 +98,7 @@ def fused_fibular_shaft(tib: Surface, h: np.ndarray, lo: float, hi: float) -> np
     F = tib.faces[band[tib.faces].all(axis=1)]
     if len(F) < 100:
         return None
-    _, lab = _vertex_components(F, len(tib.vertices))
+    _, lab = vertex_components(F, len(tib.vertices))
     used = np.unique(F)
     parts = sorted((np.flatnonzero(lab == c) for c in np.unique(lab[used])), key=lambda v: -tib.areas[v].sum())
     if len(parts) < 2:
