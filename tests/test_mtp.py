@@ -101,4 +101,5 @@ def test_plantar_fallback_uncertainty_covers_the_articular_mtp(real_feet):
             assert ang <= 3.0 * np.hypot(3.0, PLANTAR_MTP_SD[1]), (name, s)
     icl = real_feet["ICL_MRI"]
     assert any("plantar metatarsal head spheres" in n for n in icl.landmarks.bones["calcn_r"].notes)
+    assert "low_confidence" in icl.joints["mtp_r"].flags and "low_confidence" not in icl.joints["subtalar_r"].flags
     assert icl.joints["mtp_r"].axis_sd_deg > PLANTAR_MTP_SD[1]

@@ -82,6 +82,8 @@ MT_HEAD_MIN_FACING = 0.5
 #: added sd of an mtp found from the plantar contact spheres of the first and fifth heads rather than their
 #: articular surfaces: centre as a fraction of those spheres' radius, axis in degrees (see `_articular_mtp`)
 PLANTAR_MTP_SD = (1.0, 6.0)
+#: the calcaneus' note, and the toes' low-confidence flag, when the mtp comes from the plantar spheres
+PLANTAR_MTP_NOTE = "mtp from the plantar metatarsal head spheres"
 
 
 def metatarsal_heads(surface: Surface, toes: Surface, med: np.ndarray, u: float = 1.0) -> tuple[list, str | None]:
@@ -187,7 +189,8 @@ def _articular_mtp(res: BoneLandmarks, surface: Surface, toes: Surface | None, m
     ax = res.axes["mtp_axis"]
     res.axes["mtp_axis"] = Axis(ax.point, ax.direction, float(np.hypot(ax.sd_deg, k_a)))
     if toes is not None:
-        res.flag(FLAG_LOW_CONFIDENCE, f"mtp from the plantar metatarsal head spheres ({why})")
+        # a note here, the flag on the toes: the calcaneus' other joint (subtalar) is not in doubt
+        res.notes.append(f"{PLANTAR_MTP_NOTE} ({why})")
 
 
 def _second_ray_dorsum(V, X, up, med, d1m, d5m, fore, u: float = 1.0) -> np.ndarray | None:
@@ -365,13 +368,15 @@ def detect_calcn(surface: Surface, name: str = "calcn_r", *, up_hint=None, right
 def detect_toes(surface: Surface, name: str = "toes_r", calcn: BoneLandmarks | None = None) -> BoneLandmarks:
     """MTP axis of the toes segment.
 
-    With the forefoot's metatarsal head spheres the axis is the line through
-    the first and fifth head centres (pointing right); alone, the line through
-    the two ends of the proximal phalanges' base row is used.
+    With the calcaneus' result the axis is its mtp axis (`detect_calcn`), flagged low-confidence when it comes
+    from the plantar metatarsal head spheres; alone, the toes' principal axis is used.
     """
     res = BoneLandmarks(bone=name, side=side_of(name))
     if calcn is not None and "mtp_axis" in calcn.axes:
         res.axes["mtp_axis"] = calcn.axes["mtp_axis"]
+        for note in calcn.notes:
+            if note.startswith(PLANTAR_MTP_NOTE):
+                res.flag(FLAG_LOW_CONFIDENCE, note)
         return res
     V, A = surface.vertices, surface.areas
     c, ax, _ = principal_axes(V, A)
