@@ -310,6 +310,52 @@ def _subtalar_centre(tal, ax):
     return rc.value, rc.cov_fit, rc.cov_spread, {"centre": rc.to_json("m")}, (() if rc.agree else ("low_confidence",))
 
 
+#: the subtalar axis in the foot frame (plantar support plane, forward): its inclination above the plantar plane
+#: and medial deviation from the foot's long axis, mean and sd (deg) over 46 cadaver feet (Inman 1976, The Joints
+#: of the Ankle: 42 +- 9 and 23 +- 11 deg, ranges 20.5-68.5 and 4-47 deg).  The detected axes of ICL-MRI (32, 26),
+#: LHDL-CT (45, 6; the expert models 32, 26 and 44, 10) and MC22 (22-23, 11-12) lie within 2 sd; both TLEM2-MRI
+#: tali's (-45 and -33 deg: pointing down in front) 8-10 sd away
+SUBTALAR_POPULATION = {"inclination_deg": (42.0, 9.0), "medial_deviation_deg": (23.0, 11.0)}
+#: sd beyond which a detected subtalar axis is not used
+SUBTALAR_PLAUSIBLE_SD = 3.0
+
+
+def subtalar_angles(direction, foot_rotation, side: str) -> tuple[float, float]:
+    """Inclination above the plantar plane and medial deviation from the foot's long axis (deg) of a subtalar axis
+    direction (pointed forward), given the foot frame's rotation (columns forward, up, right)."""
+    x, y, z = np.asarray(foot_rotation, float).T @ np.asarray(direction, float)
+    if x < 0:
+        x, y, z = -x, -y, -z
+    med = -z if side == "r" else z
+    return float(np.degrees(np.arctan2(y, np.hypot(x, z)))), float(np.degrees(np.arctan2(med, x)))
+
+
+def _population_subtalar(tal, foot_rotation, side: str, direction):
+    """None when the detected subtalar axis is a plausible foot's (`SUBTALAR_POPULATION`), else the population
+    mean axis through the talar head centre, its origin the point nearest the talar dome centre, and a centre
+    spread of the dome radius (where the axis crosses the talus is then unknown to about the talus' size):
+    ``(Axis, origin, fit cov, spread cov, info)``."""
+    from personalize.landmarks.common import Axis
+
+    inc, dev = subtalar_angles(direction, foot_rotation, side)
+    (mi, si), (md, sdv) = SUBTALAR_POPULATION.values()
+    z = max(abs(inc - mi) / si, abs(dev - md) / sdv)
+    if z <= SUBTALAR_PLAUSIBLE_SD:
+        return None
+    F = np.asarray(foot_rotation, float)
+    med = -F[:, 2] if side == "r" else F[:, 2]
+    i, d = np.radians(mi), np.radians(md)
+    a = unit(np.cos(i) * (np.cos(d) * F[:, 0] + np.sin(d) * med) + np.sin(i) * F[:, 1])
+    hc = tal.landmarks.get("talar_head_centre") or tal.landmarks["talar_dome_centre"]
+    dome = tal.landmarks["talar_dome_centre"].position
+    o = closest_on_line(hc.position, a, dome)
+    r = _radius("ankle", None, tal)
+    info = {"detected_inclination_deg": round(inc, 2), "detected_medial_deviation_deg": round(dev, 2),
+            "sd_from_population": round(z, 2), "limit_sd": SUBTALAR_PLAUSIBLE_SD,
+            "used": "population mean axis (Inman 1976) through the talar head centre"}
+    return Axis(o, a, 0.0), o, hc.cov, (r ** 2) * np.eye(3), info
+
+
 #: largest distance (m) between a joint centre and the neighbouring bone's articular landmark (tibial
 #: plateau centre for the knee, plafond centre or medial malleolus for the ankle) in an assembled set;
 #: farther, the two bones are not articulated in the input frame (scanned or exported apart) and the joint
@@ -507,10 +553,18 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                 # the posterior facet is the subtalar joint's main articulation; its sphere centre lies on the
                 # axis (which runs through it), as the hand-built ICL-MRI model places the joint
                 o, cov, spread, cross, fl = _subtalar_centre(tal, ax)
+                sd = ax.sd_deg
+                if "foot" in cal.frames:
+                    alt = _population_subtalar(tal, cal.frames["foot"]["rotation"], s, ax.direction)
+                    if alt is not None:
+                        # the facets gave an axis no foot has: the population's, with its spread, is stated instead
+                        ax, o, cov, spread, info = alt
+                        sd, fl = float(np.hypot(*[v[1] for v in SUBTALAR_POPULATION.values()])), ("low_confidence",)
+                        cross = dict(cross or {}, population_axis=info)
                 up = cal.frames["foot"]["rotation"][:, 1] if "foot" in cal.frames else tal.frames["anatomical"]["rotation"][:, 1]
                 R = frame_zy(ax.direction, up)
                 joints[j] = _joint(j, "subtalar", o, cov, JointFrame(f"talus_{s}", o.copy(), R.copy()),
-                                   JointFrame(f"calcn_{s}", o.copy(), R.copy()), ax.sd_deg,
+                                   JointFrame(f"calcn_{s}", o.copy(), R.copy()), sd,
                                    tuple(dict.fromkeys(_flags(tal, cal) + fl)), _radius("subtalar", None, tal),
                                    spread, cross)
         # ---- mtp
