@@ -26,7 +26,7 @@ from lowerlimb.bones import side_of
 from .common import FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark
 from .shape_fits import (isotropic_cov, perpendicular, principal_axes, refine_sphere, size_unit, sphere_centre_cov,
                          sphere_fit_json)
-from .surface import Surface, extreme_vertex, largest_patch, vertex_components
+from .surface import Surface, extreme_vertex, facing, largest_patch, vertex_components
 
 __all__ = ["detect_calcn", "detect_toes"]
 
@@ -101,16 +101,14 @@ def metatarsal_heads(surface: Surface, toes: Surface, med: np.ndarray, u: float 
     """
     from personalize.fitting import fit_sphere
 
-    d, k = toes.tree().query(surface.vertices, distance_upper_bound=PHALANX_MAX_GAP + MT_HEAD_BAND)
+    d, k, ahead = facing(surface, toes, PHALANX_MAX_GAP + MT_HEAD_BAND, MT_HEAD_MIN_FACING)
     near = np.isfinite(d)
     frac = float(surface.areas[near & (d < 0.5 * PHALANX_MAX_GAP)].sum() / surface.areas.sum())
     if frac > MTP_MAX_INTERFACE_FRACTION:
         return [], (f"the toes mesh overlaps the forefoot ({100 * frac:.0f} % of it within "
                     f"{0.5e3 * PHALANX_MAX_GAP:.0f} mm): no metatarsal head articular surface told apart")
-    # an articular surface faces its partner: the forefoot's normal points to the nearest toes point
-    w = np.zeros(len(d))
-    w[near] = np.einsum("ij,ij->i", toes.vertices[k[near]] - surface.vertices[near], surface.normals[near])
-    near &= w > MT_HEAD_MIN_FACING * np.where(near, d, 0.0)
+    # an articular surface faces its partner
+    near &= ahead
     _, lab = vertex_components(toes.faces, len(toes.vertices))
     comp = np.full(len(d), -1)
     comp[near] = lab[k[near]]

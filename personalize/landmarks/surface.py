@@ -19,7 +19,7 @@ from lowerlimb.geometry import vertex_normals
 from .common import Landmark
 
 __all__ = ["Surface", "SUBDIVIDED_EDGE", "COARSE_EDGE_FRACTION", "even_sampling", "as_surface",
-           "landmark_from_vertex", "extreme_vertex", "edge_curvature", "largest_patch", "vertex_components"]
+           "landmark_from_vertex", "extreme_vertex", "edge_curvature", "largest_patch", "vertex_components", "facing"]
 
 
 @dataclass(frozen=True)
@@ -258,6 +258,18 @@ def edge_curvature(surface: Surface) -> np.ndarray:
     H = ks / np.maximum(cnt, 1)
     object.__setattr__(surface, "_edge_curvature", H)
     return H
+
+
+def facing(surface: Surface, other: Surface, reach: float, min_cos: float = 0.3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distance (m) from each vertex of `surface` to the nearest vertex of `other` (inf beyond `reach`), that
+    vertex's index (``len(other.vertices)`` beyond `reach`), and whether it lies ahead of the outward normal
+    (cosine above `min_cos`): an articular surface faces its partner."""
+    d, j = other.tree().query(surface.vertices, distance_upper_bound=reach)
+    ok = np.isfinite(d)
+    ahead = np.zeros(len(d), bool)
+    vec = other.vertices[j[ok]] - surface.vertices[ok]
+    ahead[ok] = np.einsum("ij,ij->i", vec, surface.normals[ok]) > min_cos * np.maximum(d[ok], 1e-9)
+    return d, j, ahead
 
 
 def vertex_components(F: np.ndarray, n: int) -> tuple[int, np.ndarray]:

@@ -32,7 +32,7 @@ from lowerlimb.geometry import orient, unit
 from .common import FLAG_LOW_CONFIDENCE, Axis, BoneLandmarks, Landmark
 from .shape_fits import (axis_sd_deg, hough_centres, line_through, perpendicular, principal_axes, refine_cylinder,
                          refine_sphere, size_unit, sphere_centre_cov)
-from .surface import Surface, largest_patch
+from .surface import Surface, facing, largest_patch
 
 __all__ = ["detect_talus"]
 
@@ -92,22 +92,11 @@ DOME_NEUTRAL_MAX_TURN_DEG = 20.0
 DOME_SEED_MIN_SHARE = 0.7
 
 
-def _facing(surface: Surface, other: Surface, reach: float) -> tuple[np.ndarray, np.ndarray]:
-    """Distance (m) from each vertex of `surface` to the nearest vertex of `other` (inf beyond
-    `reach`) and whether that vertex lies ahead of the outward normal (within ~73 deg)."""
-    d, j = other.tree().query(surface.vertices, distance_upper_bound=reach)
-    ok = np.isfinite(d)
-    ahead = np.zeros(len(d), bool)
-    vec = other.vertices[j[ok]] - surface.vertices[ok]
-    ahead[ok] = np.einsum("ij,ij->i", vec, surface.normals[ok]) > 0.3 * np.maximum(d[ok], 1e-9)
-    return d, ahead
-
-
 def _near(surface: Surface, other: Surface | None, gap: float) -> np.ndarray | None:
     """Vertices of `surface` whose outward normal ray meets `other` within `gap` (approx.)."""
     if other is None:
         return None
-    d, ahead = _facing(surface, other, gap)
+    d, _, ahead = facing(surface, other, gap)
     # nearly touching points count even when the vector is tiny
     return ahead | (d < 0.0005)
 
@@ -317,7 +306,7 @@ def _neutral_dome(surface: Surface, tibia: Surface, fit, p, u, talus_up, tibia_u
         a, b = unit(a), unit(b)
         rot = Rotation.from_rotvec(np.arctan2(np.cross(a, b) @ u, a @ b) * u)
         turned = Surface(rot.apply(V - p) + p, surface.faces, rot.apply(Nrm), surface.areas, surface.closed)
-        d, ahead = _facing(turned, tibia, max(0.015, DOME_CONTACT_GAP))
+        d, _, ahead = facing(turned, tibia, max(0.015, DOME_CONTACT_GAP))
         up_facing = turned.normals @ tibia_up > DOME_MIN_UP_COS
         gap = DOME_CONTACT_GAP
         if DOME_CONTACT_MARGIN is not None and (up_facing & ahead).sum() >= 30:
