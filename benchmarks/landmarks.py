@@ -138,7 +138,11 @@ def reference_comparison() -> dict:
         cov = coverage(rows[s])
         print(f"within 3 stated sd: {cov['covered']} of {cov['total']} centres and axes ("
               + ", ".join(f"{o['what']} {o['ratio']:.2f}" for o in cov["rows"]) + " sd)")
-        out[s] = {"frames": tab, "mean_centre_mm": {"ours": mo, "staple": ms}, "knee_cross_check": kc,
+        mtp = _mtp_against(J, manual)
+        if mtp:
+            print(f"mtp (no STAPLE reference): {mtp['distance_mm']:.2f} mm (Mahalanobis {mtp['mahalanobis']:.2f}), "
+                  f"{mtp['angle_deg']:.2f} deg ({mtp['axis_sd_ratio']:.2f} sd)")
+        out[s] = {"frames": tab, "mean_centre_mm": {"ours": mo, "staple": ms}, "knee_cross_check": kc, "mtp": mtp,
                   "coverage": {k: v for k, v in cov.items() if k != "rows"}, "coverage_rows": cov["rows"],
                   "dropped": dropped, "flags": {k: v.flags for k, v in ls.bones.items() if v.flags}}
     if len(rows) == 2:
@@ -159,6 +163,19 @@ def reference_comparison() -> dict:
               f"axis {MODEL_ERROR['knee']['axis_deg']} deg")
         out["calibration"] = cal
     return out
+
+
+def _mtp_against(J: dict, manual: dict) -> dict | None:
+    """The mtp joint against an expert model that has one: distance, Mahalanobis distance under the stated
+    covariance, Z-axis angle and its ratio to the stated sd."""
+    if "mtp_r" not in J or "mtp_r" not in manual:
+        return None
+    j, r = J["mtp_r"], manual["mtp_r"]
+    e = np.asarray(j.origin) - r.origin
+    ang = float(np.degrees(np.arccos(np.clip(abs(np.asarray(j.rotation)[:, 2] @ r.rotation[:, 2]), 0.0, 1.0))))
+    return {"distance_mm": float(np.linalg.norm(e)) * 1e3,
+            "mahalanobis": float(np.sqrt(e @ np.linalg.solve(np.asarray(j.origin_cov), e))),
+            "angle_deg": ang, "axis_sd_ratio": ang / float(j.axis_sd_deg), "flags": list(j.flags)}
 
 
 def hip_cap_sensitivity() -> dict:
