@@ -248,8 +248,10 @@ def test_icl_bones_as_point_clouds(shared_data, tmp_path):
     built and lie within 3 stated sd of the mesh result.  Here (draw 0) 0.2-0.6 mm, 0.2-1.2 deg; over draws 0-3
     hip 0.05-0.25 mm (its pelvis-side axis 0.4-5.6 deg: thin iliac wings at a 4 mm spacing turn normals), knee
     0.2-0.6 mm / 0.1-0.4 deg, ankle 0.5-2.5 mm / 0.4-2.5 deg.  The issue's 0.5 mm / 0.5 deg is NOT met; subtalar
-    (3.7-4.6 mm, or not built) and mtp (1-23 mm) are further off: the calcaneus and toes clouds hold several
-    touching bones (0-3 mm apart, below the 4 mm spacing), whose gaps the reconstruction fills."""
+    (3.7-4.6 mm, or not built) is further off: the calcaneus and toes clouds hold several touching bones (0-3 mm
+    apart, below the 4 mm spacing), whose gaps the reconstruction fills.  So no metatarsal head is told apart and
+    the mtp, from the plantar head spheres on the bridged forefoot (23 mm, 30 deg from the mesh's: 4.4 stated sd),
+    is dropped."""
     from personalize.bone_set import read_bone_set
 
     icl = shared_data / "bones" / "ICL_MRI"
@@ -260,9 +262,11 @@ def test_icl_bones_as_point_clouds(shared_data, tmp_path):
         _, pts = _cloud(icl / f"{b}.ply", 0.2, seed=i)
         trimesh.PointCloud(pts).export(str(d / f"{b}.ply"))
     mesh = read_bone_set(icl).joints_json()["joints"]
-    cloud = read_bone_set(d).joints_json()["joints"]
+    doc = read_bone_set(d).joints_json()
+    cloud = doc["joints"]
     assert {"hip_r", "knee_r", "ankle_r"} <= set(cloud) and set(mesh) == {f"{j}_r" for j in
                                                                          ("hip", "knee", "ankle", "subtalar", "mtp")}
+    assert "mtp_r" not in cloud and "reconstructed from points" in doc["dropped"]["mtp_r"]
     for j in ("hip_r", "knee_r", "ankle_r"):
         a, b = mesh[j], cloud[j]
         dist = np.linalg.norm(np.subtract(a["origin"], b["origin"]))

@@ -18,6 +18,7 @@ import numpy as np
 from lowerlimb.errors import FitError, InputError
 from lowerlimb.estimates import Gaussian
 
+from ..frames import SUBTALAR_POPULATION
 from ..fusion import Fused, fuse_axis, fuse_intersection
 from ..registration import Registration
 from .joint_estimates import AxisEstimates, AxisLine, CentreEstimates, Direction, JointContext, JointEstimates
@@ -57,7 +58,7 @@ MRI_ANKLE_MODEL_SD_MEASURED = 0.00025
 #: benchmarks/realistic_calibration.py; calibration.json)
 MOTION_ANKLE_MODEL_SD = 0.0
 #: default subtalar axis (Inman 1976): 42 deg up from the foot's long axis, 23 deg medial, in the static lab
-SUBTALAR_DEFAULT = (42.0, 23.0)
+SUBTALAR_DEFAULT = tuple(mean for mean, _ in SUBTALAR_POPULATION.values())
 
 
 #: the foot's bony-landmark markers (side letter dropped): heel, first and fifth metatarsal heads, toe
