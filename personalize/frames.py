@@ -332,9 +332,9 @@ def subtalar_angles(direction, foot_rotation, side: str) -> tuple[float, float]:
 
 def _population_subtalar(tal, foot_rotation, side: str, direction):
     """None when the detected subtalar axis is a plausible foot's (`SUBTALAR_POPULATION`), else the population
-    mean axis through the talar head centre, its origin the point nearest the talar dome centre, and a centre
-    spread of the dome radius (where the axis crosses the talus is then unknown to about the talus' size):
-    ``(Axis, origin, fit cov, spread cov, info)``."""
+    mean axis through the talar head centre (its sd the population's two sds combined), its origin the point
+    nearest the talar dome centre, and a centre spread of the dome radius (where the axis crosses the talus is
+    then unknown to about the talus' size): ``(Axis, origin, fit cov, spread cov, info)``."""
     from personalize.landmarks.common import Axis
 
     inc, dev = subtalar_angles(direction, foot_rotation, side)
@@ -353,7 +353,7 @@ def _population_subtalar(tal, foot_rotation, side: str, direction):
     info = {"detected_inclination_deg": round(inc, 2), "detected_medial_deviation_deg": round(dev, 2),
             "sd_from_population": round(z, 2), "limit_sd": SUBTALAR_PLAUSIBLE_SD,
             "used": "population mean axis (Inman 1976) through the talar head centre"}
-    return Axis(o, a, 0.0), o, hc.cov, (r ** 2) * np.eye(3), info
+    return Axis(o, a, float(np.hypot(si, sdv))), o, hc.cov, (r ** 2) * np.eye(3), info
 
 
 #: largest distance (m) between a joint centre and the neighbouring bone's articular landmark (tibial
@@ -559,7 +559,7 @@ def joints_from_landmarks(ls) -> tuple[dict[str, Joint], dict[str, str]]:
                     if alt is not None:
                         # the facets gave an axis no foot has: the population's, with its spread, is stated instead
                         ax, o, cov, spread, info = alt
-                        sd, fl = float(np.hypot(*[v[1] for v in SUBTALAR_POPULATION.values()])), ("low_confidence",)
+                        sd, fl = ax.sd_deg, ("low_confidence",)
                         cross = dict(cross or {}, population_axis=info)
                 up = cal.frames["foot"]["rotation"][:, 1] if "foot" in cal.frames else tal.frames["anatomical"]["rotation"][:, 1]
                 R = frame_zy(ax.direction, up)

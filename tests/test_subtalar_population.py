@@ -43,7 +43,7 @@ def test_population_axis_covers_the_expert_axis_where_the_facets_are_kept(sets, 
     tal = bs.landmarks.bones["talus_r"]
     F = bs.landmarks.bones["calcn_r"].frames["foot"]["rotation"]
     ax, o, cov, spread, _ = fr._population_subtalar(tal, F, "r", tal.axes["subtalar_axis"].direction)
-    sd = float(np.hypot(*[v[1] for v in fr.SUBTALAR_POPULATION.values()]))
-    assert np.degrees(np.arccos(abs(ax.direction @ ref.rotation[:, 2]))) < 3.0 * sd
+    assert ax.sd_deg == pytest.approx(np.hypot(9.0, 11.0))
+    assert np.degrees(np.arccos(abs(ax.direction @ ref.rotation[:, 2]))) < 3.0 * ax.sd_deg
     e = o - ref.origin
     assert np.sqrt(e @ np.linalg.solve(cov + spread, e)) < 3.0
