@@ -168,14 +168,15 @@ def reference_comparison() -> dict:
 def _mtp_against(J: dict, manual: dict) -> dict | None:
     """The mtp joint against an expert model that has one: distance, Mahalanobis distance under the stated
     covariance, Z-axis angle and its ratio to the stated sd."""
-    if "mtp_r" not in J or "mtp_r" not in manual:
+    from personalize.evaluation.reference_models import compare_joints
+
+    row = compare_joints(J, manual, ["mtp_r"]).get("mtp_r")
+    if row is None:
         return None
-    j, r = J["mtp_r"], manual["mtp_r"]
-    e = np.asarray(j.origin) - r.origin
-    ang = float(np.degrees(np.arccos(np.clip(abs(np.asarray(j.rotation)[:, 2] @ r.rotation[:, 2]), 0.0, 1.0))))
-    return {"distance_mm": float(np.linalg.norm(e)) * 1e3,
-            "mahalanobis": float(np.sqrt(e @ np.linalg.solve(np.asarray(j.origin_cov), e))),
-            "angle_deg": ang, "axis_sd_ratio": ang / float(j.axis_sd_deg), "flags": list(j.flags)}
+    j = J["mtp_r"]
+    e = np.asarray(j.origin) - manual["mtp_r"].origin
+    return dict(row, mahalanobis=float(np.sqrt(e @ np.linalg.solve(np.asarray(j.origin_cov), e))),
+                axis_sd_ratio=row["angle_deg"] / float(j.axis_sd_deg), flags=list(j.flags))
 
 
 def hip_cap_sensitivity() -> dict:

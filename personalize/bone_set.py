@@ -95,17 +95,20 @@ def _refuse_cloud_plantar_mtp(ls: LandmarkSet, surfaces, joints: dict, dropped: 
     the plantar spheres sit on the bridges: ICL-MRI's forefoot sampled at 20 % gave an axis 30 deg from its
     mesh's (4.4 stated sd).  Downstream the mtp then takes the toe marker's default axis, named as such.
     """
-    from .landmarks.foot import PLANTAR_MTP_NOTE
+    from .landmarks.foot import plantar_mtp_reason
 
+    cloud = _cloud_bones(surfaces)
     for s in ("r", "l"):
         cal, j = f"calcn_{s}", f"mtp_{s}"
-        surf = surfaces.get(cal)
-        if j not in joints or surf is None or surf.report.get("input") != "point cloud":
-            continue
-        if any(n.startswith(PLANTAR_MTP_NOTE) for n in ls.bones[cal].notes):
+        if j in joints and cal in cloud and plantar_mtp_reason(ls.bones[cal]) is not None:
             del joints[j]
             dropped[j] = (f"{cal} is reconstructed from points and no metatarsal head articular surface was found "
                           "against the toes: the plantar head spheres of a reconstructed forefoot are not vouched for")
+
+
+def _cloud_bones(surfaces) -> set[str]:
+    """The bones whose surface was reconstructed from a point cloud."""
+    return {b for b, s in surfaces.items() if s.report.get("input") == "point cloud"}
 
 
 def _check_names(ls: LandmarkSet, surfaces, trust_names: bool) -> None:
@@ -119,7 +122,7 @@ def _check_names(ls: LandmarkSet, surfaces, trust_names: bool) -> None:
     from .landmarks import _refuse_names as refuse
     from .landmarks import name_problems
 
-    cloud = {b for b, s in surfaces.items() if s.report.get("input") == "point cloud"}
+    cloud = _cloud_bones(surfaces)
     for b, why in name_problems(ls).items():
         if b in cloud:
             ls.bones[b].notes.append(f"{b}: not refused ({why}): its surface is reconstructed from points; "

@@ -330,6 +330,14 @@ def subtalar_angles(direction, foot_rotation, side: str) -> tuple[float, float]:
     return float(np.degrees(np.arctan2(y, np.hypot(x, z)))), float(np.degrees(np.arctan2(med, x)))
 
 
+def subtalar_direction(forward, up, medial, inclination_deg: float, medial_deviation_deg: float) -> np.ndarray:
+    """The unit axis `inclination_deg` above the plane of `forward` and `medial` and `medial_deviation_deg` from
+    `forward` towards `medial` (the inverse of `subtalar_angles`)."""
+    i, d = np.radians(inclination_deg), np.radians(medial_deviation_deg)
+    return unit(np.cos(i) * (np.cos(d) * np.asarray(forward, float) + np.sin(d) * np.asarray(medial, float))
+                + np.sin(i) * np.asarray(up, float))
+
+
 def _population_subtalar(tal, foot_rotation, side: str, direction):
     """None when the detected subtalar axis is a plausible foot's (`SUBTALAR_POPULATION`), else the population
     mean axis through the talar head centre (its sd the population's two sds combined), its origin the point
@@ -343,9 +351,7 @@ def _population_subtalar(tal, foot_rotation, side: str, direction):
     if z <= SUBTALAR_PLAUSIBLE_SD:
         return None
     F = np.asarray(foot_rotation, float)
-    med = -F[:, 2] if side == "r" else F[:, 2]
-    i, d = np.radians(mi), np.radians(md)
-    a = unit(np.cos(i) * (np.cos(d) * F[:, 0] + np.sin(d) * med) + np.sin(i) * F[:, 1])
+    a = subtalar_direction(F[:, 0], F[:, 1], -F[:, 2] if side == "r" else F[:, 2], mi, md)
     hc = tal.landmarks.get("talar_head_centre") or tal.landmarks["talar_dome_centre"]
     dome = tal.landmarks["talar_dome_centre"].position
     o = closest_on_line(hc.position, a, dome)

@@ -191,6 +191,11 @@ def _articular_mtp(res: BoneLandmarks, surface: Surface, toes: Surface | None, m
         res.notes.append(f"{PLANTAR_MTP_NOTE} ({why})")
 
 
+def plantar_mtp_reason(calcn: BoneLandmarks) -> str | None:
+    """The calcaneus' note saying its mtp comes from the plantar head spheres (and why), or None."""
+    return next((n for n in calcn.notes if n.startswith(PLANTAR_MTP_NOTE)), None)
+
+
 def _second_ray_dorsum(V, X, up, med, d1m, d5m, fore, u: float = 1.0) -> np.ndarray | None:
     """Plug-in-Gait's TOE site: the most dorsal point over the second metatarsal head (scanner, m), or None.
 
@@ -372,9 +377,9 @@ def detect_toes(surface: Surface, name: str = "toes_r", calcn: BoneLandmarks | N
     res = BoneLandmarks(bone=name, side=side_of(name))
     if calcn is not None and "mtp_axis" in calcn.axes:
         res.axes["mtp_axis"] = calcn.axes["mtp_axis"]
-        for note in calcn.notes:
-            if note.startswith(PLANTAR_MTP_NOTE):
-                res.flag(FLAG_LOW_CONFIDENCE, note)
+        why = plantar_mtp_reason(calcn)
+        if why is not None:
+            res.flag(FLAG_LOW_CONFIDENCE, why)
         return res
     V, A = surface.vertices, surface.areas
     c, ax, _ = principal_axes(V, A)

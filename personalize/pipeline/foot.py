@@ -18,7 +18,7 @@ import numpy as np
 from lowerlimb.errors import FitError, InputError
 from lowerlimb.estimates import Gaussian
 
-from ..frames import SUBTALAR_POPULATION
+from ..frames import SUBTALAR_POPULATION, subtalar_direction
 from ..fusion import Fused, fuse_axis, fuse_intersection
 from ..registration import Registration
 from .joint_estimates import AxisEstimates, AxisLine, CentreEstimates, Direction, JointContext, JointEstimates
@@ -179,8 +179,7 @@ def estimate_foot_axes(ctx: JointContext, s: str, ankle: Fused, ankle_scale: flo
     left = np.cross([0.0, 0.0, 1.0], fwd)
     med = left if s == "r" else -left
     if "subtalar" not in lines:
-        up_deg, med_deg = np.radians(SUBTALAR_DEFAULT)
-        d = np.cos(up_deg) * (np.cos(med_deg) * fwd + np.sin(med_deg) * med) + np.sin(up_deg) * np.array([0.0, 0.0, 1.0])
+        d = subtalar_direction(fwd, [0.0, 0.0, 1.0], med, *SUBTALAR_DEFAULT)
         lines["subtalar"] = AxisLine(ankle.mean + np.array([0.0, 0.0, -0.03]), d)
         est.sources[f"subtalar_{s}"] = "default axis (Inman 1976: 42 deg up, 23 deg medial), 3 cm below the ankle centre"
     if "mtp" not in lines:
